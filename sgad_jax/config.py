@@ -1,0 +1,166 @@
+"""Configuration: one frozen dataclass per pipeline stage, nested in :class:`SLAMConfig`.
+
+Presets are Python files in ``configs/`` exposing ``get_config()``; command-line overrides use
+dotted keys (``--set track.stride=10``), parsed with the type of the field they replace.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import importlib.util
+import json
+import pathlib
+from typing import Any
+
+
+@dataclasses.dataclass(frozen=True)
+class SyntheticConfig:
+    """The built-in procedurally textured room (see ``sgad_jax.io.synthetic``)."""
+
+    frames: int = 60
+    width: int = 320
+    height: int = 240
+    depth_noise: float = 0.0  # std of Gaussian depth noise, metres per metre of depth
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    path: str = ""  # empty: the built-in synthetic scene
+    layout: str = "auto"  # auto | tum | replica | 7scenes | scannet | scannetpp | generic | synthetic
+    start: int = 0
+    stride: int = 1
+    max_frames: int = 0  # 0: all
+    downscale: int = 1  # integer factor: colour by area averaging, depth by taking every n-th pixel
+    intrinsics: tuple[float, ...] = ()  # (fx, fy, cx, cy) at full resolution; empty: from the dataset
+    depth_scale: float = 0.0  # raw units per metre; 0: the dataset's convention
+    depth_trunc: float = 0.0  # metres; depth beyond it is treated as missing; 0: keep all
+    tum_max_dt: float = 0.08  # TUM rgb/depth/pose association tolerance (s), as every published number
+    inpaint: bool = True  # fill missing depth by Navier-Stokes inpainting for the appearance branch
+    synthetic: SyntheticConfig = SyntheticConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackConfig:
+    """Geometry branch: GICP of every R-th pixel against the global geometry set T."""
+
+    stride: int = 5  # R: take every R-th pixel of the depth image (paper: 10 Replica/ScanNet++, 5 TUM/ScanNet)
+    k: int = 23  # K_c: neighbours for each point's covariance (paper: 10 Replica, 23 TUM, 15 ScanNet)
+    window: int = 5  # the K_c neighbours are the nearest in 3D among a window x window patch of the strided grid
+    depth_gate: float = 0.1  # a neighbour farther than depth_gate * depth (along z) is another surface
+    eps: float = 1e-3  # floor of eigenvalue ratios after scale normalisation
+    min_depth: float = 0.1
+    max_depth: float = 0.0  # 0: no limit
+    voxel_size: float = 0.02  # geometry set: one Gaussian per voxel; a point in an occupied voxel overlaps T
+    capacity: int = 1 << 19  # geometry set capacity (Gaussians)
+    max_iterations: int = 30
+    tolerance: float = 1e-6  # stop when the update's translation (m) and rotation (rad) fall below it
+    max_correspondence: float = 0.05  # metres between a point and its match in T
+    constant_velocity: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class MapConfig:
+    """Appearance branch (pixel-aligned Gaussians at adjusted depth); paper hyper-parameters."""
+
+    iterations: int = 100
+    neighbours: int = 2
+    current_view_fraction: float = 0.4
+    lr_rgb: float = 0.0025
+    lr_radius: float = 0.005
+    lr_opacity: float = 0.05
+    lr_offset: float = 0.01
+    weight_l1: float = 0.8
+    weight_ssim: float = 0.2
+    weight_depth: float = 1.0
+    learn_offset: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class SLAMConfig:
+    name: str = "default"
+    data: DataConfig = DataConfig()
+    track: TrackConfig = TrackConfig()
+    map: MapConfig = MapConfig()
+    seed: int = 0
+
+
+class ConfigError(ValueError):
+    """A preset or override that cannot be applied."""
+
+
+def _parse(text: str, current: Any, key: str) -> Any:
+    try:
+        if isinstance(current, bool):
+            low = text.strip().lower()
+            if low in ("1", "true", "yes", "on"):
+                return True
+            if low in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(text)
+        if isinstance(current, int):
+            return int(text)
+        if isinstance(current, float):
+            return float(text)
+        if isinstance(current, tuple):
+            text = text.strip().strip("()[]")
+            return tuple(float(v) for v in text.replace(",", " ").split()) if text else ()
+        return text
+    except ValueError:
+        raise ConfigError(f"--set {key}={text}: expected a value of type {type(current).__name__}") from None
+
+
+def override(cfg: Any, key: str, text: str) -> Any:
+    """Return ``cfg`` with the dotted field ``key`` set from the string ``text``."""
+    head, _, rest = key.partition(".")
+    names = [f.name for f in dataclasses.fields(cfg)]
+    if head not in names:
+        raise ConfigError(f"--set {key}: unknown field '{head}' (choose from {', '.join(names)})")
+    current = getattr(cfg, head)
+    if rest:
+        if not dataclasses.is_dataclass(current):
+            raise ConfigError(f"--set {key}: '{head}' has no sub-fields")
+        return dataclasses.replace(cfg, **{head: override(current, rest, text)})
+    if dataclasses.is_dataclass(current):
+        raise ConfigError(f"--set {key}: '{head}' is a group; set one of its fields, e.g. {head}.{dataclasses.fields(current)[0].name}")
+    return dataclasses.replace(cfg, **{head: _parse(text, current, key)})
+
+
+def apply_overrides(cfg: SLAMConfig, items: list[str]) -> SLAMConfig:
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep:
+            raise ConfigError(f"--set {item}: expected key=value")
+        cfg = override(cfg, key.strip(), text.strip())
+    return cfg
+
+
+PRESET_DIR = pathlib.Path(__file__).resolve().parent.parent / "configs"
+
+
+def load_preset(name_or_path: str) -> SLAMConfig:
+    """A preset by name (``tum``, ``replica``, ...: ``configs/<name>.py``) or by path to a ``.py`` file."""
+    path = pathlib.Path(name_or_path)
+    if path.suffix == ".py":
+        if not path.is_file():
+            raise ConfigError(f"{path}: config file not found")
+        spec = importlib.util.spec_from_file_location(f"_sgad_preset_{path.stem}", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    else:
+        try:
+            module = importlib.import_module(f"configs.{name_or_path}")
+        except ModuleNotFoundError:
+            names = sorted(p.stem for p in PRESET_DIR.glob("*.py") if not p.stem.startswith("_"))
+            raise ConfigError(f"unknown preset '{name_or_path}' (choose from {', '.join(names)} or give a .py path)") from None
+    if not hasattr(module, "get_config"):
+        raise ConfigError(f"{name_or_path}: a preset must define get_config()")
+    cfg = module.get_config()
+    if not isinstance(cfg, SLAMConfig):
+        raise ConfigError(f"{name_or_path}: get_config() must return an SLAMConfig")
+    return cfg
+
+
+def to_dict(cfg: Any) -> dict:
+    return json.loads(json.dumps(dataclasses.asdict(cfg)))

@@ -1,0 +1,190 @@
+"""The dataset interface shared by every loader: host-side numpy, never jitted.
+
+A loader subclasses :class:`Dataset` and implements ``_num_raw``, ``_load_raw`` (colour uint8 and
+depth in metres at full resolution for the dataset's own frame ``j``), and sets ``intrinsics_full``,
+``timestamps_raw`` and ``gt_poses_raw``. The base class applies what every layout shares: frame
+selection (start, stride, max frames), depth truncation, integer downscaling and inpainting.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+import cv2
+import numpy as np
+
+from sgad_jax.config import DataConfig
+from sgad_jax.types import Intrinsics, make_intrinsics
+
+
+class DatasetError(Exception):
+    """Bad input: the message is one line naming the file and the problem."""
+
+
+@dataclasses.dataclass
+class RGBDSample:
+    """One frame on the host.
+
+    Attributes:
+        index: position in the run (0-based, after start / stride / max frames).
+        source_index: position in the dataset's own frame list.
+        timestamp: seconds (TUM) or the source index.
+        rgb: (h, w, 3) uint8 colour.
+        depth: (h, w) float32 measured depth in metres, 0 where missing.
+        depth_filled: (h, w) float32 depth with holes inpainted (equal to ``depth`` if inpainting is off).
+        pose_gt: (4, 4) float64 camera-to-world ground truth (OpenCV axes), NaN if unknown.
+    """
+
+    index: int
+    source_index: int
+    timestamp: float
+    rgb: np.ndarray
+    depth: np.ndarray
+    depth_filled: np.ndarray
+    pose_gt: np.ndarray
+
+
+def read_image(path: pathlib.Path, *, depth: bool = False) -> np.ndarray:
+    """Colour as (h, w, 3) uint8 RGB, or depth as a raw 2-D array; DatasetError when it cannot be read."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: file not found")
+    flags = cv2.IMREAD_UNCHANGED if depth else cv2.IMREAD_COLOR
+    image = cv2.imread(str(path), flags)
+    if image is None:
+        raise DatasetError(f"{path}: cannot decode image (corrupt or unsupported format)")
+    if depth:
+        if image.ndim != 2:
+            raise DatasetError(f"{path}: depth image must have one channel, got shape {image.shape}")
+        return image
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def inpaint_depth(depth: np.ndarray, radius: int = 5) -> np.ndarray:
+    """Fill missing depth (0) with OpenCV's Navier-Stokes inpainting (``cv2.INPAINT_NS``).
+
+    cv2.inpaint takes 8-bit or 32-bit float single-channel images; holes are where the mask is set.
+    An all-missing frame is returned unchanged (nothing to propagate from).
+    """
+    missing = depth <= 0
+    if not missing.any() or missing.all():
+        return depth.astype(np.float32)
+    filled = cv2.inpaint(depth.astype(np.float32), missing.astype(np.uint8), radius, cv2.INPAINT_NS)
+    return np.where(missing, np.maximum(filled, 0.0), depth).astype(np.float32)
+
+
+def downscale_rgbd(rgb: np.ndarray, depth: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Colour by area averaging; depth by taking every ``factor``-th pixel (never mixes in missing depth)."""
+    if factor == 1:
+        return rgb, depth
+    h, w = depth.shape
+    hs, ws = h // factor, w // factor
+    rgb = cv2.resize(rgb[: hs * factor, : ws * factor], (ws, hs), interpolation=cv2.INTER_AREA)
+    off = factor // 2
+    depth = depth[off::factor, off::factor][:hs, :ws]
+    return rgb, np.ascontiguousarray(depth)
+
+
+class Dataset:
+    """Base class of every loader; see the module docstring."""
+
+    layout: str = "?"
+    intrinsics_full: Intrinsics
+    timestamps_raw: np.ndarray  # (N,) float64
+    gt_poses_raw: np.ndarray  # (N, 4, 4) float64, NaN where unknown
+
+    def __init__(self, root: pathlib.Path, cfg: DataConfig):
+        self.root = pathlib.Path(root)
+        self.cfg = cfg
+
+    # --- implemented by loaders -------------------------------------------------------------
+    def _num_raw(self) -> int:
+        raise NotImplementedError
+
+    def _load_raw(self, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """(rgb uint8 (H, W, 3), depth float32 metres (H, W)) of the dataset's own frame ``j``."""
+        raise NotImplementedError
+
+    # --- shared -----------------------------------------------------------------------------
+    def _finish_init(self) -> None:
+        """Call at the end of a loader's ``__init__``: validates options and selects frames."""
+        cfg = self.cfg
+        if cfg.stride < 1 or cfg.start < 0 or cfg.max_frames < 0 or cfg.downscale < 1:
+            raise DatasetError(
+                f"{self.root}: invalid frame selection start={cfg.start} stride={cfg.stride} "
+                f"max_frames={cfg.max_frames} downscale={cfg.downscale}"
+            )
+        if cfg.intrinsics:
+            if len(cfg.intrinsics) != 4:
+                raise DatasetError(f"{self.root}: data.intrinsics needs 4 values (fx, fy, cx, cy), got {cfg.intrinsics}")
+            fx, fy, cx, cy = cfg.intrinsics
+            base = self.intrinsics_full
+            try:
+                self.intrinsics_full = make_intrinsics(fx, fy, cx, cy, base.width, base.height)
+            except ValueError as e:
+                raise DatasetError(f"{self.root}: data.intrinsics: {e}") from None
+        n = self._num_raw()
+        selection = np.arange(cfg.start, n, cfg.stride)
+        if cfg.max_frames:
+            selection = selection[: cfg.max_frames]
+        if len(selection) == 0:
+            raise DatasetError(f"{self.root}: no frames selected ({n} frames, start={cfg.start}, stride={cfg.stride})")
+        self.selection = selection
+        self.intrinsics = self.intrinsics_full.scaled(cfg.downscale) if cfg.downscale > 1 else self.intrinsics_full
+
+    @property
+    def name(self) -> str:
+        return self.root.name
+
+    def __len__(self) -> int:
+        return len(self.selection)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return np.asarray(self.timestamps_raw)[self.selection]
+
+    @property
+    def gt_poses(self) -> np.ndarray:
+        return np.asarray(self.gt_poses_raw)[self.selection]
+
+    @property
+    def has_gt(self) -> bool:
+        return bool(np.isfinite(self.gt_poses).all(axis=(1, 2)).any())
+
+    def __getitem__(self, i: int) -> RGBDSample:
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        j = int(self.selection[i])
+        rgb, depth = self._load_raw(j)
+        full = self.intrinsics_full
+        if depth.shape != (full.height, full.width):
+            raise DatasetError(
+                f"{self._describe(j)}: depth is {depth.shape[1]}x{depth.shape[0]}, expected {full.width}x{full.height}"
+            )
+        if rgb.shape[:2] != depth.shape:
+            raise DatasetError(
+                f"{self._describe(j)}: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}"
+            )
+        depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+        if self.cfg.depth_trunc > 0:
+            depth = np.where(depth <= self.cfg.depth_trunc, depth, 0.0).astype(np.float32)
+        rgb, depth = downscale_rgbd(rgb, depth, self.cfg.downscale)
+        filled = inpaint_depth(depth) if self.cfg.inpaint else depth
+        return RGBDSample(
+            index=i,
+            source_index=j,
+            timestamp=float(self.timestamps_raw[j]),
+            rgb=rgb,
+            depth=depth,
+            depth_filled=filled,
+            pose_gt=np.asarray(self.gt_poses_raw[j], np.float64),
+        )
+
+    def _describe(self, j: int) -> str:
+        """A file or folder naming frame ``j``, for error messages; loaders may override."""
+        return f"{self.root} frame {j}"
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]

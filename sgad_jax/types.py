@@ -1,0 +1,195 @@
+"""Pytrees of sgad_jax: intrinsics, RGB-D frames, pixel-aligned Gaussians, the geometry set.
+
+All are frozen dataclasses registered with ``jax.tree_util.register_dataclass``. Fields that fix
+shapes (image size, capacity) are static metadata; everything else is an array. Build them with the
+``make_*`` / ``empty_*`` factories, update them with ``dataclasses.replace``.
+
+Shape vocabulary: ``h w`` image, ``n`` Gaussians, ``m`` points, ``f`` frames, ``*b`` optional batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+_static = functools.partial(dataclasses.field, metadata=dict(static=True))
+
+
+def _pytree(cls):
+    return jax.tree_util.register_dataclass(dataclasses.dataclass(frozen=True)(cls))
+
+
+@_pytree
+class Intrinsics:
+    """Pinhole intrinsics (OpenCV axes: x right, y down, z forward). Distortion is ignored."""
+
+    fx: Float[Array, "*b"]
+    fy: Float[Array, "*b"]
+    cx: Float[Array, "*b"]
+    cy: Float[Array, "*b"]
+    width: int = _static()
+    height: int = _static()
+
+    def scaled(self, factor: int) -> "Intrinsics":
+        """Intrinsics of the image downscaled by an integer ``factor`` (pixel ``j`` of the small image
+        covers pixels ``[f j, f j + f)``; its centre is at ``f j + (f - 1) / 2``)."""
+        f = float(factor)
+        return Intrinsics(
+            fx=self.fx / f,
+            fy=self.fy / f,
+            cx=(self.cx - (f - 1.0) / 2.0) / f,
+            cy=(self.cy - (f - 1.0) / 2.0) / f,
+            width=self.width // factor,
+            height=self.height // factor,
+        )
+
+    def as_tuple(self) -> tuple[float, float, float, float]:
+        return float(self.fx), float(self.fy), float(self.cx), float(self.cy)
+
+
+def make_intrinsics(fx, fy, cx, cy, width: int, height: int) -> Intrinsics:
+    f32 = lambda v: np.float32(v)  # noqa: E731
+    if width <= 0 or height <= 0 or fx <= 0 or fy <= 0:
+        raise ValueError(f"invalid intrinsics fx={fx} fy={fy} width={width} height={height}")
+    return Intrinsics(f32(fx), f32(fy), f32(cx), f32(cy), int(width), int(height))
+
+
+@_pytree
+class Frame:
+    """One RGB-D frame on device.
+
+    ``depth`` is the measured depth (0 where missing) used by tracking; ``depth_filled`` has the
+    holes inpainted (Navier-Stokes) for the appearance branch.
+    """
+
+    rgb: Float[Array, "*b h w 3"]
+    depth: Float[Array, "*b h w"]
+    depth_filled: Float[Array, "*b h w"]
+    valid: Bool[Array, "*b h w"]
+
+
+def make_frame(rgb, depth, depth_filled=None) -> Frame:
+    """Frame from host arrays: ``rgb`` uint8 or float in [0, 1], ``depth`` in metres (0 = missing)."""
+    rgb = np.asarray(rgb)
+    if rgb.dtype == np.uint8:
+        rgb = rgb.astype(np.float32) / 255.0
+    depth = np.asarray(depth, np.float32)
+    valid = np.isfinite(depth) & (depth > 0)
+    depth = np.where(valid, depth, 0.0).astype(np.float32)
+    filled = depth if depth_filled is None else np.asarray(depth_filled, np.float32)
+    return Frame(
+        rgb=jnp.asarray(rgb, jnp.float32),
+        depth=jnp.asarray(depth),
+        depth_filled=jnp.asarray(filled),
+        valid=jnp.asarray(valid),
+    )
+
+
+@_pytree
+class PixelGaussians:
+    """The pixel-aligned Gaussians of one frame (SGAD-SLAM, Sec. 3): one per pixel, on its ray.
+
+    Gaussian (v, u) sits at depth ``|depth + offset|`` along the ray of pixel (v, u) of the frame it
+    was made from; it is isotropic with the given ``radius`` (metres).
+    """
+
+    rgb: Float[Array, "*b h w 3"]
+    radius: Float[Array, "*b h w"]
+    opacity: Float[Array, "*b h w"]
+    offset: Float[Array, "*b h w"]
+    depth: Float[Array, "*b h w"]
+
+
+@_pytree
+class GeometrySet:
+    """The global set T of geometry Gaussians, one per occupied voxel, fixed capacity.
+
+    Entries ``[0, count)`` are active and sorted by their packed voxel key; the rest hold the
+    sentinel key ``KEY_EMPTY`` (larger than any real key), so that ``searchsorted`` works on the
+    whole array. Covariances are scale-normalised (middle eigenvalue 1) and stored as their six
+    unique entries ``xx yy zz xy xz yz``.
+    """
+
+    keys: Int[Array, " n"]
+    points: Float[Array, "3 n"]
+    covs: Float[Array, "6 n"]
+    normals: Float[Array, "3 n"]
+    count: Int[Array, ""]
+    origin: Float[Array, "3"]
+    voxel_size: float = _static()
+
+    @property
+    def capacity(self) -> int:
+        return self.keys.shape[-1]
+
+    @property
+    def active(self) -> Bool[Array, " n"]:
+        return jnp.arange(self.capacity) < self.count
+
+
+KEY_EMPTY = np.int32(2**31 - 1)
+
+
+def empty_geometry(capacity: int, voxel_size: float, origin=(0.0, 0.0, 0.0)) -> GeometrySet:
+    """An empty geometry set; voxel keys cover 1024 voxels per axis centred on ``origin``."""
+    if capacity <= 0 or voxel_size <= 0:
+        raise ValueError(f"geometry set needs capacity > 0 and voxel_size > 0, got {capacity}, {voxel_size}")
+    return GeometrySet(
+        keys=jnp.full((capacity,), KEY_EMPTY, jnp.int32),
+        points=jnp.zeros((3, capacity), jnp.float32),
+        covs=jnp.zeros((6, capacity), jnp.float32),
+        normals=jnp.zeros((3, capacity), jnp.float32),
+        count=jnp.zeros((), jnp.int32),
+        origin=jnp.asarray(origin, jnp.float32),
+        voxel_size=float(voxel_size),
+    )
+
+
+@_pytree
+class PointCloud:
+    """Geometry Gaussians of one frame (strided pixels), masked; component-major like GeometrySet."""
+
+    points: Float[Array, "3 m"]
+    covs: Float[Array, "6 m"]
+    normals: Float[Array, "3 m"]
+    valid: Bool[Array, " m"]
+
+
+@_pytree
+class TrackInfo:
+    """Diagnostics of one tracking step."""
+
+    iterations: Int[Array, "*b"]
+    converged: Bool[Array, "*b"]
+    cost: Float[Array, "*b"]
+    inliers: Int[Array, "*b"]
+    points: Int[Array, "*b"]
+
+
+@_pytree
+class InsertInfo:
+    """Diagnostics of one insertion into the geometry set."""
+
+    inserted: Int[Array, ""]
+    overflow: Int[Array, ""]
+    out_of_range: Int[Array, ""]
+
+
+__all__ = [
+    "Intrinsics",
+    "make_intrinsics",
+    "Frame",
+    "make_frame",
+    "PixelGaussians",
+    "GeometrySet",
+    "empty_geometry",
+    "KEY_EMPTY",
+    "PointCloud",
+    "TrackInfo",
+    "InsertInfo",
+]
