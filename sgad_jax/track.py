@@ -42,8 +42,8 @@ def associate(cfg: TrackConfig, geom: GeometrySet, q: Float[Array, "3 m"], valid
     e = [q[a] - geom.points[a][idx] for a in range(3)]
     d2 = e[0] ** 2 + e[1] ** 2 + e[2] ** 2
     ok = hit & (d2 <= cfg.max_correspondence**2) & valid
-    surf = jnp.abs(sum(geom.normals[a][idx] * e[a] for a in range(3)))
-    score = jnp.where(ok, surf, jnp.inf)
+    surf = (sum(geom.normals[a][idx] * e[a] for a in range(3)))
+    score = jnp.where(ok, surf * surf + cfg.nn_weight * d2, jnp.inf)
     best = jnp.min(score, axis=0)
     # First candidate attaining the minimum, without argmin (slow on XLA:CPU).
     attains = (score == best) & ok

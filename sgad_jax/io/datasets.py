@@ -27,6 +27,7 @@ import numpy as np
 
 from sgad_jax.config import DataConfig
 from sgad_jax.io.base import Dataset, DatasetError, read_image
+from sgad_jax.io.export import quaternion_to_matrix
 from sgad_jax.types import Intrinsics, make_intrinsics
 
 # ScanNet edge crop in pixels (GS uses 12, NICE 10). 0 (no crop) is the SplaTAM / VTGS lineage default.
@@ -109,22 +110,6 @@ def _no_gt(n: int) -> np.ndarray:
 def _natural_key(path: pathlib.Path):
     """Sort key that orders embedded numbers numerically (``2.png`` before ``10.png``)."""
     return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", path.stem)]
-
-
-def quaternion_to_matrix(q) -> np.ndarray:
-    """Rotation matrices from quaternions ``(..., 4)`` in scalar-last order ``qx qy qz qw``.
-
-    The quaternions are normalised first, so slightly denormalised inputs (text files) are fine.
-    """
-    q = np.asarray(q, np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
-    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 def _tum_poses(path: pathlib.Path, rows: list[list[str]]) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,131 @@
+"""Tracking speed and accuracy: sgad_jax against small_gicp on the same frames, in one process.
+
+The peer is small_gicp (C++, PyPI ``small-gicp``) run frame-to-model as in the baseline of
+``shared/data/README.md``: every R-th depth pixel, covariances from K_c neighbours (its k-d tree),
+VGICP against its own Gaussian voxel map (5 cm voxels), constant-velocity guess, the aligned frame
+inserted into the map, 2 threads. Both sides are timed per frame from a depth image in memory to
+an updated map (preprocessing included); compile time is reported separately.
+
+Usage::
+
+    python benchmarks/bench_track.py --data ../shared/data/tum_fr1_xyz [--config tum] [--start 0] [--max-frames 0]
+
+Prints one JSON object: ours_ms_median, small_gicp_ms_median, ratio (ours / peer), ours_ate_cm,
+small_gicp_ate_cm (ATE RMSE, SE(3)-aligned), ours_compile_s, frames, and the settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+
+def _strided_points(depth: np.ndarray, intr, stride: int) -> np.ndarray:
+    off = stride // 2
+    d = depth[off::stride, off::stride]
+    v, u = np.mgrid[off : depth.shape[0] : stride, off : depth.shape[1] : stride]
+    m = d > 0.1
+    fx, fy, cx, cy = intr.as_tuple()
+    z = d[m].astype(np.float64)
+    return np.stack([(u[m] - cx) / fx * z, (v[m] - cy) / fy * z, z], axis=1)
+
+
+def _small_gicp_track(depths, intr, T0, stride, k, voxel, max_corr, threads):
+    import small_gicp
+
+    vmap = small_gicp.GaussianVoxelMap(voxel)
+    poses, times = [], []
+    T_prev = T_prev2 = T0
+    for depth in depths:
+        t0 = time.perf_counter()
+        pc = small_gicp.PointCloud(_strided_points(depth, intr, stride))
+        small_gicp.estimate_covariances(pc, num_neighbors=k, num_threads=threads)
+        if poses:
+            guess = T_prev @ np.linalg.inv(T_prev2) @ T_prev
+            res = small_gicp.align(vmap, pc, guess, max_correspondence_distance=max_corr, num_threads=threads)
+            T = res.T_target_source
+        else:
+            T = T0
+        vmap.insert(pc, T)
+        times.append(time.perf_counter() - t0)
+        poses.append(T)
+        T_prev2, T_prev = T_prev, T
+    return np.stack(poses), np.asarray(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--config", default=None, help="preset (default: from the layout)")
+    ap.add_argument("--start", type=int, default=0)
+    ap.add_argument("--max-frames", type=int, default=0)
+    ap.add_argument("--set", dest="overrides", action="append", default=[])
+    ap.add_argument("--peer-voxel", type=float, default=0.05)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+
+    import jax
+    import jax.numpy as jnp
+
+    from sgad_jax import pipeline, slam
+    from sgad_jax.cli import _PRESET_FOR_LAYOUT
+    from sgad_jax.config import apply_overrides, load_preset
+    from sgad_jax.eval.ate import ate
+    from sgad_jax.io.datasets import detect_layout, open_dataset
+
+    cfg = load_preset(args.config or _PRESET_FOR_LAYOUT[detect_layout(args.data)])
+    cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, path=args.data, start=args.start, max_frames=args.max_frames))
+    cfg = apply_overrides(cfg, args.overrides)
+    ds = open_dataset(cfg.data)
+    depths = [ds[i].depth for i in range(len(ds))]  # read everything first: timings exclude file I/O
+    gt = ds.gt_poses
+    intr = ds.intrinsics
+    tcfg = cfg.track
+
+    # Ours: compile once, then time each frame.
+    state = slam.init_state(tcfg, pipeline._initial_pose(ds))
+    t0 = time.perf_counter()
+    step = jax.jit(slam.track_step, static_argnums=0).lower(tcfg, state, jnp.asarray(depths[0]), intr).compile()
+    compile_s = time.perf_counter() - t0
+    ours, ours_t = [], []
+    for depth in depths:
+        t0 = time.perf_counter()
+        state, T, _, _ = step(state, jnp.asarray(depth), intr)
+        pose = np.asarray(T.as_matrix())
+        ours_t.append(time.perf_counter() - t0)
+        ours.append(pose)
+    ours = np.stack(ours)
+
+    T0 = np.asarray(pipeline._initial_pose(ds).as_matrix(), np.float64)
+    peer, peer_t = _small_gicp_track(depths, intr, T0, tcfg.stride, tcfg.k, args.peer_voxel, 2 * args.peer_voxel, args.threads)
+
+    ours_ms = 1000 * float(np.median(ours_t[1:]))
+    peer_ms = 1000 * float(np.median(peer_t[1:]))
+    out = {
+        "data": os.path.abspath(args.data),
+        "frames": len(depths),
+        "resolution": f"{intr.width}x{intr.height}",
+        "stride": tcfg.stride,
+        "k": tcfg.k,
+        "ours_ms_median": ours_ms,
+        "small_gicp_ms_median": peer_ms,
+        "ratio": ours_ms / peer_ms,
+        "ours_ate_cm": 100 * ate(ours, gt)["rmse_m"],
+        "small_gicp_ate_cm": 100 * ate(peer, gt)["rmse_m"],
+        "ours_compile_s": compile_s,
+        "small_gicp_voxel_m": args.peer_voxel,
+        "threads": args.threads,
+        "jax_backend": jax.default_backend(),
+    }
+    json.dump(out, sys.stdout, indent=2)
+    print()
+
+
+if __name__ == "__main__":
+    main()

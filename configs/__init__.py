@@ -1,0 +1,1 @@
+"""Presets: one per dataset kind and a demo. Each module exposes ``get_config() -> SLAMConfig``."""

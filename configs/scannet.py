@@ -1,0 +1,7 @@
+"""ScanNet (640x480 depth): paper settings R = 5, K_c = 15."""
+
+from sgad_jax.config import DataConfig, SLAMConfig, TrackConfig
+
+
+def get_config() -> SLAMConfig:
+    return SLAMConfig(name="scannet", data=DataConfig(layout="auto"), track=TrackConfig(stride=5, k=15))

@@ -1,0 +1,7 @@
+"""ScanNet++ DSLR (876x584 after the usual half-size resize): paper settings R = 10, K_c = 10."""
+
+from sgad_jax.config import DataConfig, SLAMConfig, TrackConfig
+
+
+def get_config() -> SLAMConfig:
+    return SLAMConfig(name="scannetpp", data=DataConfig(layout="auto"), track=TrackConfig(stride=10, k=10))
