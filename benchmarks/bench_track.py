@@ -83,7 +83,10 @@ def main() -> None:
     cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, path=args.data, start=args.start, max_frames=args.max_frames))
     cfg = apply_overrides(cfg, args.overrides)
     ds = open_dataset(cfg.data)
-    depths = [ds[i].depth for i in range(len(ds))]  # read everything first: timings exclude file I/O
+    samples = [ds[i] for i in range(len(ds))]  # read everything first: timings exclude file I/O
+    depths = [s.depth for s in samples]
+    stamps = np.array([s.depth_timestamp for s in samples])
+    dts = np.diff(stamps, prepend=stamps[0]).astype(np.float32)
     gt = ds.gt_poses
     intr = ds.intrinsics
     tcfg = cfg.track
@@ -91,12 +94,12 @@ def main() -> None:
     # Ours: compile once, then time each frame.
     state = slam.init_state(tcfg, pipeline._initial_pose(ds))
     t0 = time.perf_counter()
-    step = jax.jit(slam.track_step, static_argnums=0).lower(tcfg, state, jnp.asarray(depths[0]), intr).compile()
+    step = jax.jit(slam.track_step, static_argnums=0).lower(tcfg, state, jnp.asarray(depths[0]), intr, dts[0]).compile()
     compile_s = time.perf_counter() - t0
     ours, ours_t = [], []
-    for depth in depths:
+    for depth, dt in zip(depths, dts):
         t0 = time.perf_counter()
-        state, T, _, _ = step(state, jnp.asarray(depth), intr)
+        state, T, _, _ = step(state, jnp.asarray(depth), intr, dt)
         pose = np.asarray(T.as_matrix())
         ours_t.append(time.perf_counter() - t0)
         ours.append(pose)

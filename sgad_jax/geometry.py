@@ -1,8 +1,9 @@
 """The global geometry set T: one geometry Gaussian per occupied voxel, fixed capacity.
 
 Layout (see :class:`sgad_jax.types.GeometrySet`): ``keys[:count]`` are the packed voxel keys of the
-active entries in increasing order, each entry's data (point, covariance, normal) stored beside it.
-Lookups are ``searchsorted`` on ``keys``; insertion merges the sorted new keys in with one scatter.
+active entries in increasing order, ``slots`` points to each entry's data (stored in insertion
+order). Lookups are ``searchsorted`` on ``keys``; insertion appends the data and merges the sorted
+new keys (and their slots) in with one scatter.
 DESIGN.md measured this at 0.4 ms per 12k queries against 1M entries on XLA:CPU, where a k-d tree
 is not an option and a fixed-size spatial hash overflowed.
 
@@ -57,7 +58,8 @@ def _find(keys: Int[Array, " n"], query: Int[Array, "*m"]) -> tuple[Int[Array, "
 
 
 def candidates(geom: GeometrySet, p_w: Float[Array, "3 m"]) -> tuple[Int[Array, "8 m"], Bool[Array, "8 m"]]:
-    """Entries of the 2x2x2 voxel block nearest each point (every entry within half a voxel per axis).
+    """Data slots of the entries of the 2x2x2 voxel block nearest each point (so every entry within
+    half a voxel per axis), and whether each exists.
 
     x-neighbours have consecutive keys, so the block needs 4 binary searches instead of 8: the entry
     for key ``k + 1`` sits at the position found for ``k`` or just after it.
@@ -73,7 +75,7 @@ def candidates(geom: GeometrySet, p_w: Float[Array, "3 m"]) -> tuple[Int[Array, 
     at_nxt = geom.keys[nxt] == k1
     idx = jnp.concatenate([pos, jnp.where(at_pos, pos, nxt)])
     hit = jnp.concatenate([f0, in1 & (at_pos | at_nxt)])
-    return idx, hit
+    return geom.slots[idx], hit
 
 
 def occupied(geom: GeometrySet, p_w: Float[Array, "3 m"]) -> Bool[Array, " m"]:
@@ -105,23 +107,30 @@ def insert(geom: GeometrySet, cloud_w: PointCloud) -> tuple[GeometrySet, InsertI
     nkeys = jnp.full((m,), KEY_EMPTY).at[dest].set(skey, mode="drop")
     nsrc = jnp.zeros((m,), jnp.int32).at[dest].set(order, mode="drop")
     # Final positions: an old entry moves up by the number of new keys below it, a new entry by the
-    # number of old keys below it.
-    old_pos = jnp.arange(geom.capacity) + _search(nkeys, geom.keys)
-    old_pos = jnp.where(geom.active, old_pos, geom.capacity)
-    new_pos = jnp.arange(m) + _search(geom.keys, nkeys)
-    new_pos = jnp.where(jnp.arange(m) < n_new, new_pos, geom.capacity)
+    # number of old keys below it. Data goes to slots [count, count + n_new).
+    # (# new keys below old key i) = (# new keys whose insertion point is <= i): a histogram of the
+    # insertion points and a cumulative sum, cheaper than searching every old key among the new.
+    fresh = jnp.arange(m) < n_new
+    below = _search(geom.keys, nkeys)
+    shift = jnp.cumsum(jnp.zeros(geom.capacity, jnp.int32).at[jnp.where(fresh, below, geom.capacity)].add(1, mode="drop"))
+    old_pos = jnp.where(geom.active, jnp.arange(geom.capacity) + shift, geom.capacity)
+    new_pos = jnp.where(fresh, jnp.arange(m) + below, geom.capacity)
+    new_slot = jnp.where(fresh, geom.count + jnp.arange(m), geom.capacity)
 
-    def merge(old, newvals, fill):
-        out = jnp.full(old.shape, fill, old.dtype)
-        out = out.at[..., old_pos].set(old, mode="drop")
-        return out.at[..., new_pos].set(newvals[..., nsrc], mode="drop")
+    def merge(old, new, fill):
+        out = jnp.full(old.shape, fill, old.dtype).at[old_pos].set(old, mode="drop")
+        return out.at[new_pos].set(new, mode="drop")
+
+    def append(old, new):
+        return old.at[:, new_slot].set(new[:, nsrc], mode="drop")
 
     out = dataclasses.replace(
         geom,
-        keys=merge(geom.keys, key, KEY_EMPTY),
-        points=merge(geom.points, cloud_w.points, 0.0),
-        covs=merge(geom.covs, cloud_w.covs, 0.0),
-        normals=merge(geom.normals, cloud_w.normals, 0.0),
+        keys=merge(geom.keys, nkeys, KEY_EMPTY),
+        slots=merge(geom.slots, geom.count + jnp.arange(m, dtype=jnp.int32), 0),
+        points=append(geom.points, cloud_w.points),
+        covs=append(geom.covs, cloud_w.covs),
+        normals=append(geom.normals, cloud_w.normals),
         count=geom.count + n_new,
     )
     info = InsertInfo(

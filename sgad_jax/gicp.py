@@ -154,6 +154,9 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
     # rank_o = #{o' : dist_o' < dist_o, or equal and o' < o}; keep rank < k.
     w = []
     for o, do in enumerate(dist):
+        if cfg.k >= len(dist):
+            w.append(jnp.isfinite(do).astype(jnp.float32))
+            continue
         rank = sum(((dq < do) if q_ > o else (dq <= do)).astype(jnp.int32) for q_, dq in enumerate(dist) if q_ != o)
         w.append(((rank < cfg.k) & jnp.isfinite(do)).astype(jnp.float32))
     cnt = sum(w)

@@ -44,11 +44,6 @@ def retract_left(T: SE3, xi: Float[Array, "6"]) -> SE3:
     return SE3.exp(xi) @ T
 
 
-def constant_velocity(T_prev: SE3, T_prev2: SE3) -> SE3:
-    """Pose guess for the next frame: repeat the last relative motion, ``T1 (T2^-1 T1)``."""
-    return T_prev @ (T_prev2.inverse() @ T_prev)
-
-
 def rotation_components(T: SE3) -> tuple[Float[Array, "3 3"], Float[Array, "3"]]:
     """(R, t) as arrays, for component-wise maths."""
     m = T.as_matrix()

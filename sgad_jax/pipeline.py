@@ -61,6 +61,7 @@ def run(cfg: SLAMConfig, out_dir: str | os.PathLike | None = None, *, track_only
     step = jax.jit(slam.track_step, static_argnums=0)
 
     poses, stamps, times, iters = [], [], [], []
+    last_depth_t = None
     compile_s = None
     stopped = None
     bar = tqdm(total=len(ds), desc=f"tracking {ds.name}", unit="frame", disable=not progress, file=sys.stderr)
@@ -68,12 +69,14 @@ def run(cfg: SLAMConfig, out_dir: str | os.PathLike | None = None, *, track_only
         for i in range(len(ds)):
             sample = ds[i]
             depth = jnp.asarray(sample.depth)
+            dt = jnp.float32(0.0 if last_depth_t is None else sample.depth_timestamp - last_depth_t)
+            last_depth_t = sample.depth_timestamp
             if compile_s is None:
                 t0 = time.perf_counter()
-                compiled = step.lower(tcfg, state, depth, intr).compile()
+                compiled = step.lower(tcfg, state, depth, intr, dt).compile()
                 compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
-            state, T, info, _ = compiled(state, depth, intr)
+            state, T, info, _ = compiled(state, depth, intr, dt)
             pose = np.asarray(T.as_matrix())
             times.append(time.perf_counter() - t0)
             if not np.isfinite(pose).all():

@@ -7,7 +7,6 @@ Pure functions over :class:`SLAMState`; the host loop (file reading, progress, o
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -19,14 +18,14 @@ from sgad_jax.track import track, transform_cloud
 from sgad_jax.types import GeometrySet, InsertInfo, Intrinsics, TrackInfo, empty_geometry
 
 
-@functools.partial(jax.tree_util.register_dataclass, data_fields=["geom", "T_prev", "T_prev2", "frames"], meta_fields=[])
+@jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class SLAMState:
     """What tracking carries from frame to frame."""
 
     geom: GeometrySet
     T_prev: lie.SE3  # pose of the last tracked frame
-    T_prev2: lie.SE3  # pose of the one before
+    velocity: Float[Array, "6"]  # body-frame twist per unit time of the last motion with dt > 0
     frames: Int[Array, ""]  # frames tracked so far
 
 
@@ -35,20 +34,25 @@ def init_state(cfg: TrackConfig, T_init: lie.SE3 | None = None) -> SLAMState:
     T_init = lie.identity() if T_init is None else T_init
     origin = T_init.translation()
     geom = empty_geometry(cfg.capacity, cfg.voxel_size, origin)
-    return SLAMState(geom=geom, T_prev=T_init, T_prev2=T_init, frames=jnp.zeros((), jnp.int32))
+    return SLAMState(geom=geom, T_prev=T_init, velocity=jnp.zeros(6), frames=jnp.zeros((), jnp.int32))
 
 
 def track_step(
-    cfg: TrackConfig, state: SLAMState, depth: Float[Array, "h w"], intr: Intrinsics
+    cfg: TrackConfig, state: SLAMState, depth: Float[Array, "h w"], intr: Intrinsics, dt: Float[Array, ""]
 ) -> tuple[SLAMState, lie.SE3, TrackInfo, InsertInfo]:
     """Track one frame against T, then add its non-overlapping geometry Gaussians to T.
 
     The first frame meets an empty T and keeps its initial pose. The guess is the constant-velocity
-    prediction (or the previous pose when ``cfg.constant_velocity`` is off).
+    prediction ``T_prev exp(v dt)`` (or ``T_prev`` when ``cfg.constant_velocity`` is off), where
+    ``dt`` is the time between this depth image and the previous one: velocity in time rather than
+    per frame, because TUM's depth and colour streams are not synchronised and consecutive frames
+    can be 0, 1 or 2 depth images apart.
     """
     cloud = gicp.frame_points(cfg, depth, intr)
-    guess = lie.constant_velocity(state.T_prev, state.T_prev2) if cfg.constant_velocity else state.T_prev
+    guess = state.T_prev @ lie.exp(state.velocity * dt) if cfg.constant_velocity else state.T_prev
     T, info = track(cfg, state.geom, cloud, guess)
     geom, ins = geometry.insert(state.geom, transform_cloud(T, cloud))
-    new = SLAMState(geom=geom, T_prev=T, T_prev2=state.T_prev, frames=state.frames + 1)
+    moved = dt > 0
+    velocity = jnp.where(moved, (state.T_prev.inverse() @ T).log() / jnp.where(moved, dt, 1.0), state.velocity)
+    new = SLAMState(geom=geom, T_prev=T, velocity=velocity, frames=state.frames + 1)
     return new, T, info, ins

@@ -109,13 +109,16 @@ class PixelGaussians:
 class GeometrySet:
     """The global set T of geometry Gaussians, one per occupied voxel, fixed capacity.
 
-    Entries ``[0, count)`` are active and sorted by their packed voxel key; the rest hold the
-    sentinel key ``KEY_EMPTY`` (larger than any real key), so that ``searchsorted`` works on the
-    whole array. Covariances are scale-normalised (middle eigenvalue 1) and stored as their six
-    unique entries ``xx yy zz xy xz yz``.
+    ``keys[:count]`` are the packed voxel keys of the active entries in increasing order (the rest
+    hold the sentinel ``KEY_EMPTY``, larger than any real key, so that ``searchsorted`` works on the
+    whole array) and ``slots[i]`` says where the data of the entry with key ``keys[i]`` is. The data
+    (point, covariance, normal) is stored in insertion order, slots ``[0, count)``, so that an
+    insertion moves only the two index arrays. Covariances are scale-normalised (middle eigenvalue 1)
+    and stored as their six unique entries ``xx yy zz xy xz yz``.
     """
 
     keys: Int[Array, " n"]
+    slots: Int[Array, " n"]
     points: Float[Array, "3 n"]
     covs: Float[Array, "6 n"]
     normals: Float[Array, "3 n"]
@@ -141,6 +144,7 @@ def empty_geometry(capacity: int, voxel_size: float, origin=(0.0, 0.0, 0.0)) -> 
         raise ValueError(f"geometry set needs capacity > 0 and voxel_size > 0, got {capacity}, {voxel_size}")
     return GeometrySet(
         keys=jnp.full((capacity,), KEY_EMPTY, jnp.int32),
+        slots=jnp.zeros((capacity,), jnp.int32),
         points=jnp.zeros((3, capacity), jnp.float32),
         covs=jnp.zeros((6, capacity), jnp.float32),
         normals=jnp.zeros((3, capacity), jnp.float32),

@@ -30,6 +30,8 @@ class RGBDSample:
         index: position in the run (0-based, after start / stride / max frames).
         source_index: position in the dataset's own frame list.
         timestamp: seconds (TUM) or the source index.
+        depth_timestamp: when the depth image was taken, in the same unit (TUM: its own stamp,
+            which differs from the colour stamp; elsewhere equal to ``timestamp``).
         rgb: (h, w, 3) uint8 colour.
         depth: (h, w) float32 measured depth in metres, 0 where missing.
         depth_filled: (h, w) float32 depth with holes inpainted (equal to ``depth`` if inpainting is off).
@@ -39,6 +41,7 @@ class RGBDSample:
     index: int
     source_index: int
     timestamp: float
+    depth_timestamp: float
     rgb: np.ndarray
     depth: np.ndarray
     depth_filled: np.ndarray
@@ -92,6 +95,7 @@ class Dataset:
     layout: str = "?"
     intrinsics_full: Intrinsics
     timestamps_raw: np.ndarray  # (N,) float64
+    depth_timestamps_raw: np.ndarray | None = None  # (N,) float64, when depth has stamps of its own
     gt_poses_raw: np.ndarray  # (N, 4, 4) float64, NaN where unknown
 
     def __init__(self, root: pathlib.Path, cfg: DataConfig):
@@ -175,6 +179,7 @@ class Dataset:
             index=i,
             source_index=j,
             timestamp=float(self.timestamps_raw[j]),
+            depth_timestamp=float((self.timestamps_raw if self.depth_timestamps_raw is None else self.depth_timestamps_raw)[j]),
             rgb=rgb,
             depth=depth,
             depth_filled=filled,

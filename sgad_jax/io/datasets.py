@@ -198,6 +198,9 @@ class TUMDataset(_FileDataset):
         self.rgb_paths = [self.root / rgb_names[i] for i, _, _ in kept]
         self.depth_paths = [self.root / depth_names[j] for _, j, _ in kept]
         self.timestamps_raw = np.array([t_rgb[i] for i, _, _ in kept], np.float64)
+        # Depth and colour are not synchronised: the geometry of frame i was seen at its depth stamp
+        # (two colour frames can even share one depth image), which the motion model needs.
+        self.depth_timestamps_raw = np.array([t_depth[j] for _, j, _ in kept], np.float64)
         self.gt_poses_raw = poses[[k for _, _, k in kept]] if t_pose is not None else _no_gt(len(kept))
         self.depth_scale = cfg.depth_scale if cfg.depth_scale > 0 else 5000.0
         match = re.search(r"(?:freiburg|fr)([123])", self.root.resolve().name.lower())
