@@ -130,8 +130,10 @@ def _gauss_newton(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: li
             return (it < cfg.max_iterations) & ~done & (_moved(T, T_ref, reach) < 0.25 * geom.voxel_size)
 
         # One step always (so that a non-finite pose cannot stall the outer loop), then more while
-        # the candidates are still fresh.
-        return jax.lax.while_loop(fresh, inner, inner(state))
+        # the candidates are still fresh. Convergence counts only if the pose ended close to where
+        # the candidates were looked up: candidates from afar can miss the nearest Gaussians.
+        T, it, done, c, n_in = jax.lax.while_loop(fresh, inner, inner(state))
+        return T, it, done & (_moved(T, T_ref, reach) < cfg.relookup * geom.voxel_size), c, n_in
 
     def more(state):
         return (state[1] < cfg.max_iterations) & ~state[2]
@@ -163,12 +165,13 @@ def track(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T_guess: lie.S
         T = lie.exp(xi) @ T_guess
         return jax.grad(lambda eps: cost(cfg, geom, cloud, lie.exp(eps) @ T))(jnp.zeros(6))
 
-    def solve(_, xi0):
-        T, info = _gauss_newton(cfg, geom, cloud, lie.exp(xi0) @ T_guess)
-        return lie.log(T @ T_guess.inverse()), info
+    # The solver runs outside custom_root (whose has_aux path rejects integer diagnostics); the root
+    # it found is handed to custom_root, which supplies the implicit derivatives.
+    T_sol, info = _gauss_newton(cfg, geom, cloud, T_guess)
+    xi_sol = jax.lax.stop_gradient(lie.log(T_sol @ T_guess.inverse()))
 
     def tangent_solve(g, y):
         return jnp.linalg.solve(jax.jacfwd(g)(y), y)
 
-    xi, info = jax.lax.custom_root(grad_at, jnp.zeros(6), solve, tangent_solve, has_aux=True)
+    xi = jax.lax.custom_root(grad_at, jnp.zeros(6), lambda f, x0: xi_sol, tangent_solve)
     return lie.exp(xi) @ T_guess, info

@@ -1,0 +1,54 @@
+"""sgad_jax: SGAD-SLAM (CVPR 2026) in JAX.
+
+Public API (pure functions over pytrees; see README.md):
+
+* types: :class:`Intrinsics`, :class:`Frame`, :class:`PixelGaussians`, :class:`GeometrySet`,
+  :class:`PointCloud`, :class:`TrackInfo`, :class:`InsertInfo`
+* tracking: :func:`frame_points` (geometry Gaussians of a depth image), :func:`track` (GICP on SE(3)
+  against the geometry set), :func:`track_cost`, :func:`insert` (add non-overlapping Gaussians)
+* SLAM steps: :class:`SLAMState`, :func:`init_state`, :func:`track_step`
+* configuration: :class:`SLAMConfig` and its stage configs, :func:`load_preset`
+* host side: :func:`open_dataset`, :func:`run`
+"""
+
+from sgad_jax.config import DataConfig, MapConfig, SLAMConfig, SyntheticConfig, TrackConfig, load_preset
+from sgad_jax.geometry import insert
+from sgad_jax.gicp import frame_points
+from sgad_jax.slam import SLAMState, init_state, track_step
+from sgad_jax.track import cost as track_cost
+from sgad_jax.track import track, transform_cloud
+from sgad_jax.types import (
+    Frame,
+    GeometrySet,
+    InsertInfo,
+    Intrinsics,
+    PixelGaussians,
+    PointCloud,
+    TrackInfo,
+    empty_geometry,
+    make_frame,
+    make_intrinsics,
+)
+
+
+def open_dataset(cfg: DataConfig):
+    """Open a dataset folder (or the synthetic scene); see :mod:`sgad_jax.io.datasets`."""
+    from sgad_jax.io.datasets import open_dataset as _open
+
+    return _open(cfg)
+
+
+def run(cfg: SLAMConfig, out_dir=None, **kwargs):
+    """Run the pipeline over ``cfg.data``; see :func:`sgad_jax.pipeline.run`."""
+    from sgad_jax.pipeline import run as _run
+
+    return _run(cfg, out_dir, **kwargs)
+
+
+__version__ = "0.1.0"
+__all__ = [
+    "DataConfig", "MapConfig", "SLAMConfig", "SyntheticConfig", "TrackConfig", "load_preset",
+    "insert", "frame_points", "SLAMState", "init_state", "track_step", "track_cost", "track",
+    "transform_cloud", "Frame", "GeometrySet", "InsertInfo", "Intrinsics", "PixelGaussians",
+    "PointCloud", "TrackInfo", "empty_geometry", "make_frame", "make_intrinsics", "open_dataset", "run",
+]

@@ -1,0 +1,159 @@
+"""GICP building blocks against independent oracles: numpy eigh / inv, brute-force kNN, autodiff,
+finite differences."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from sgad_jax import gicp, lie
+from sgad_jax.config import TrackConfig
+from sgad_jax.types import make_intrinsics
+
+
+def _spd(seed):
+    rng = np.random.default_rng(seed)
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    lam = np.sort(rng.uniform(0.01, 2.0, 3))[::-1] * np.array([1.0, 1.0, rng.choice([1.0, 1e-2, 1e-4])])
+    return (Q * lam) @ Q.T
+
+
+@settings(deadline=None, max_examples=40)
+@given(st.integers(0, 10_000))
+def test_normalise_covariance_matches_eigh(seed):
+    C = _spd(seed)
+    eps = 1e-3
+    out, n, ok = gicp.normalise_covariance(gicp.mat_to_sym(jnp.asarray(C, jnp.float32)[None]), eps)
+    lam, V = np.linalg.eigh(C)  # ascending
+    l3, l2, l1 = lam
+    assert bool(ok[0])
+    want = V @ np.diag([max(l3 / l2, eps), 1.0, l1 / l2]) @ V.T
+    np.testing.assert_allclose(np.asarray(gicp.sym_to_mat(out))[0], want, rtol=2e-3, atol=2e-3 * l1 / l2)
+    # The normal is the eigenvector of the smallest eigenvalue (up to sign), when it is distinct.
+    if l3 < 0.5 * l2:
+        assert abs(abs(float(np.dot(np.asarray(n)[:, 0], V[:, 0]))) - 1.0) < 1e-3
+
+
+def test_sym_helpers_match_numpy():
+    rng = np.random.default_rng(1)
+    C = np.stack([_spd(s) for s in range(10)])
+    with jax.enable_x64(True):
+        c6 = gicp.mat_to_sym(jnp.asarray(C))
+        np.testing.assert_allclose(np.asarray(gicp.sym_to_mat(gicp.sym_inverse(c6))), np.linalg.inv(C), rtol=1e-8)
+        R = np.asarray(lie.to_matrix(lie.exp(jnp.asarray(rng.normal(size=6)))))[:3, :3]
+        np.testing.assert_allclose(np.asarray(gicp.sym_to_mat(gicp.rotate_sym(jnp.asarray(R), c6))), R @ C @ R.T, atol=1e-12)
+        e = rng.normal(size=(10, 3))
+        np.testing.assert_allclose(gicp.mahalanobis(jnp.asarray(e.T), c6), np.einsum("ni,nij,nj->n", e, C, e), rtol=1e-10)
+
+
+def _bumpy_depth(h=40, w=48):
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    depth = 1.5 + 0.2 * np.sin(u / 7.0) * np.cos(v / 5.0) + 0.002 * u
+    depth[:, w // 2 :] += 0.6  # a depth jump: neighbours across it must be excluded
+    depth[5:9, 5:9] = 0.0  # missing depth
+    return depth
+
+
+def test_frame_points_match_brute_force_knn():
+    """Covariance of each point from its k nearest (3-D) among the window, recomputed in numpy."""
+    cfg = TrackConfig(stride=2, k=10, window=5, depth_gate=0.1, eps=1e-3)
+    intr = make_intrinsics(60.0, 60.0, 23.5, 19.5, 48, 40)
+    depth = _bumpy_depth()
+    cloud = gicp.frame_points(cfg, jnp.asarray(depth), intr)
+
+    off, s, r = cfg.stride // 2, cfg.stride, cfg.window // 2
+    d = depth[off::s, off::s]
+    vv, uu = np.mgrid[off : depth.shape[0] : s, off : depth.shape[1] : s]
+    P = np.stack([(uu - 23.5) / 60.0 * d, (vv - 19.5) / 60.0 * d, d], -1)
+    hs, ws = d.shape
+    checked = 0
+    for i in range(hs):
+        for j in range(ws):
+            if d[i, j] <= cfg.min_depth:
+                assert not bool(cloud.valid[i * ws + j])
+                continue
+            cands = []
+            for di in range(-r, r + 1):
+                for dj in range(-r, r + 1):
+                    a, b = i + di, j + dj
+                    if 0 <= a < hs and 0 <= b < ws and d[a, b] > cfg.min_depth and abs(d[a, b] - d[i, j]) <= cfg.depth_gate * d[i, j]:
+                        cands.append(P[a, b])
+            cands = np.array(cands)
+            dist = np.sum((cands - P[i, j]) ** 2, axis=1)
+            nb = cands[np.argsort(dist, kind="stable")[: cfg.k]]
+            C = np.cov(nb.T, bias=True)
+            lam, V = np.linalg.eigh(C)
+            if not bool(cloud.valid[i * ws + j]) or lam[1] < 1e-2 * lam[2]:
+                continue
+            want = V @ np.diag([max(lam[0] / lam[1], cfg.eps), 1.0, lam[2] / lam[1]]) @ V.T
+            got = np.asarray(gicp.sym_to_mat(cloud.covs[:, i * ws + j]))
+            np.testing.assert_allclose(got, want, rtol=5e-3, atol=5e-3 * lam[2] / lam[1])
+            np.testing.assert_allclose(np.asarray(cloud.points[:, i * ws + j]), P[i, j], rtol=1e-6)
+            checked += 1
+    assert checked > 0.8 * hs * ws - 20
+
+
+def test_frame_points_plane_normals():
+    """On a tilted plane every normal is the plane's and the covariance is flat (eps floor)."""
+    cfg = TrackConfig(stride=4, k=10)
+    intr = make_intrinsics(100.0, 100.0, 31.5, 23.5, 64, 48)
+    n = np.array([0.2, -0.3, 1.0]) / np.linalg.norm([0.2, -0.3, 1.0])
+    v, u = np.mgrid[0:48, 0:64].astype(np.float64)
+    ray = np.stack([(u - 31.5) / 100.0, (v - 23.5) / 100.0, np.ones_like(u)], -1)
+    depth = (2.0 / (ray @ n)).astype(np.float32)  # plane n . p = 2
+    cloud = gicp.frame_points(cfg, jnp.asarray(depth), intr)
+    normals = np.asarray(cloud.normals)[:, np.asarray(cloud.valid)]
+    assert normals.shape[1] > 100
+    np.testing.assert_allclose(np.abs(n @ normals), 1.0, atol=1e-3)
+    C = np.asarray(gicp.sym_to_mat(cloud.covs[:, np.asarray(cloud.valid)]))
+    assert np.allclose(np.einsum("i,nij,j->n", n, C, n), 1e-3, rtol=0.05)
+
+
+def test_linearise_matches_autodiff():
+    """H = J^T M J and g = J^T M e with J = d e / d xi (left perturbation), from jax.jacfwd."""
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(2)
+        m = 7
+        a = jnp.asarray(rng.normal(size=(3, m)))
+        b = jnp.asarray(rng.normal(size=(3, m)))
+        M = gicp.mat_to_sym(jnp.asarray(np.stack([np.linalg.inv(_spd(s)) for s in range(m)])))
+        w = jnp.asarray(rng.uniform(0, 1, m))
+        T = lie.exp(jnp.asarray(rng.normal(size=6) * 0.3))
+
+        def residual(xi):
+            R, t = lie.rotation_components(lie.exp(xi) @ T)
+            return lie.transform_points(R, t, a) - b
+
+        J = jax.jacfwd(residual)(jnp.zeros(6))  # (3, m, 6)
+        e = residual(jnp.zeros(6))
+        Mm = np.asarray(gicp.sym_to_mat(M))
+        H_want = sum(w[k] * J[:, k, :].T @ Mm[k] @ J[:, k, :] for k in range(m))
+        g_want = sum(w[k] * J[:, k, :].T @ Mm[k] @ e[:, k] for k in range(m))
+        R, t = lie.rotation_components(T)
+        H, g, c = gicp.linearise(lie.transform_points(R, t, a), e, M, w)
+        np.testing.assert_allclose(H, H_want, rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(g, g_want, rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(c, sum(w[k] * e[:, k] @ Mm[k] @ e[:, k] for k in range(m)), rtol=1e-10)
+
+
+def test_gicp_cost_gradient_matches_finite_differences():
+    """Gradient of the GICP cost (M depends on R too) with respect to the pose, in float64."""
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(3)
+        m = 20
+        a = jnp.asarray(rng.normal(size=(3, m)))
+        b = jnp.asarray(rng.normal(size=(3, m)))
+        Ca = gicp.mat_to_sym(jnp.asarray(np.stack([_spd(s) for s in range(m)])))
+        Cb = gicp.mat_to_sym(jnp.asarray(np.stack([_spd(s + 100) for s in range(m)])))
+        w = jnp.ones(m)
+        T = lie.exp(jnp.asarray(rng.normal(size=6) * 0.3))
+
+        def f(xi):
+            R, t = lie.rotation_components(lie.exp(xi) @ T)
+            return gicp.gicp_cost(R, t, a, Ca, b, Cb, w)
+
+        grad = jax.grad(f)(jnp.zeros(6))
+        h = 1e-6
+        fd = np.array([(f(h * e) - f(-h * e)) / (2 * h) for e in np.eye(6)])
+        np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-8)
