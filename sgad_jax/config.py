@@ -113,20 +113,21 @@ def _parse(text: str, current: Any, key: str) -> Any:
         raise ConfigError(f"--set {key}={text}: expected a value of type {type(current).__name__}") from None
 
 
-def override(cfg: Any, key: str, text: str) -> Any:
+def override(cfg: Any, key: str, text: str, _full: str | None = None) -> Any:
     """Return ``cfg`` with the dotted field ``key`` set from the string ``text``."""
+    full = key if _full is None else _full
     head, _, rest = key.partition(".")
     names = [f.name for f in dataclasses.fields(cfg)]
     if head not in names:
-        raise ConfigError(f"--set {key}: unknown field '{head}' (choose from {', '.join(names)})")
+        raise ConfigError(f"--set {full}: unknown field '{head}' (choose from {', '.join(names)})")
     current = getattr(cfg, head)
     if rest:
         if not dataclasses.is_dataclass(current):
-            raise ConfigError(f"--set {key}: '{head}' has no sub-fields")
-        return dataclasses.replace(cfg, **{head: override(current, rest, text)})
+            raise ConfigError(f"--set {full}: '{head}' has no sub-fields")
+        return dataclasses.replace(cfg, **{head: override(current, rest, text, full)})
     if dataclasses.is_dataclass(current):
-        raise ConfigError(f"--set {key}: '{head}' is a group; set one of its fields, e.g. {head}.{dataclasses.fields(current)[0].name}")
-    return dataclasses.replace(cfg, **{head: _parse(text, current, key)})
+        raise ConfigError(f"--set {full}: '{head}' is a group; set one of its fields, e.g. {head}.{dataclasses.fields(current)[0].name}")
+    return dataclasses.replace(cfg, **{head: _parse(text, current, full)})
 
 
 def apply_overrides(cfg: SLAMConfig, items: list[str]) -> SLAMConfig:
