@@ -87,47 +87,53 @@ def occupied(geom: GeometrySet, p_w: Float[Array, "3 m"]) -> Bool[Array, " m"]:
 def insert(geom: GeometrySet, cloud_w: PointCloud) -> tuple[GeometrySet, InsertInfo]:
     """Add the points of ``cloud_w`` (world frame) whose voxels are empty; one per voxel.
 
-    Fixed shapes throughout: the new keys are sorted (m log m), then merged with the existing sorted
-    keys by computing every entry's final position with ``searchsorted`` and one scatter per array.
-    When capacity runs out the remaining points are dropped and counted in ``InsertInfo.overflow``.
+    Fixed shapes throughout, and no scatter over the whole capacity (slow on XLA:CPU): the new keys
+    are sorted, the lowest point index per new voxel is kept (the first point to reach a voxel owns
+    it), the data is appended at slots ``[count, count + n_new)``, and the sorted key and slot
+    arrays are rebuilt by one gather each. When capacity runs out the remaining points are dropped
+    and counted in ``InsertInfo.overflow``.
     """
     key, inside = pack(voxel_coords(geom, cloud_w.points))
     _, exists = _find(geom.keys, key)
     new = cloud_w.valid & inside & ~exists
     key = jnp.where(new, key, KEY_EMPTY)
     m = key.shape[0]
-    order = jnp.argsort(key, stable=True)
-    skey = key[order]
+    skey = jnp.sort(key)
     first = jnp.concatenate([jnp.ones((1,), bool), skey[1:] != skey[:-1]]) & (skey != KEY_EMPTY)
-    rank = jnp.cumsum(first) - 1
+    rank = jnp.cumsum(first) - 1  # rank of each sorted key among the distinct new keys
     take = first & (rank < geom.capacity - geom.count)
     n_new = jnp.sum(take).astype(jnp.int32)
-    # Compact the accepted new keys to the front, still sorted.
-    dest = jnp.where(take, rank, m)
-    nkeys = jnp.full((m,), KEY_EMPTY).at[dest].set(skey, mode="drop")
-    nsrc = jnp.zeros((m,), jnp.int32).at[dest].set(order, mode="drop")
-    # Final positions: an old entry moves up by the number of new keys below it, a new entry by the
-    # number of old keys below it. Data goes to slots [count, count + n_new).
-    # (# new keys below old key i) = (# new keys whose insertion point is <= i): a histogram of the
-    # insertion points and a cumulative sum, cheaper than searching every old key among the new.
+    # The accepted distinct keys, compacted to the front in order, and for each the lowest index of
+    # a point that falls in it.
+    nkeys = jnp.full((m,), KEY_EMPTY).at[jnp.where(take, rank, m)].set(skey, mode="drop")
+    r = jnp.where(new, rank[jnp.minimum(_search(skey, key), m - 1)], m)
+    r = jnp.where(r < n_new, r, m)
+    nsrc = jnp.full((m,), m, jnp.int32).at[r].min(jnp.arange(m, dtype=jnp.int32), mode="drop")
     fresh = jnp.arange(m) < n_new
-    below = _search(geom.keys, nkeys)
-    shift = jnp.cumsum(jnp.zeros(geom.capacity, jnp.int32).at[jnp.where(fresh, below, geom.capacity)].add(1, mode="drop"))
-    old_pos = jnp.where(geom.active, jnp.arange(geom.capacity) + shift, geom.capacity)
-    new_pos = jnp.where(fresh, jnp.arange(m) + below, geom.capacity)
-    new_slot = jnp.where(fresh, geom.count + jnp.arange(m), geom.capacity)
+    slot_of_new = geom.count + jnp.arange(m, dtype=jnp.int32)
 
-    def merge(old, new, fill):
-        out = jnp.full(old.shape, fill, old.dtype).at[old_pos].set(old, mode="drop")
-        return out.at[new_pos].set(new, mode="drop")
+    # Merge by gathering: output position p holds new key j when p = j + (# old keys below it),
+    # otherwise old entry p - (# new keys placed before p).
+    cap = geom.capacity
+    new_pos = jnp.where(fresh, jnp.arange(m) + _search(geom.keys, nkeys), cap)
+    is_new = jnp.zeros(cap, bool).at[new_pos].set(True, mode="drop")
+    # New keys at positions <= p; associative_scan is ~4x faster than cumsum here on XLA:CPU.
+    n_before = jax.lax.associative_scan(jnp.add, is_new.astype(jnp.int32))
+    p = jnp.arange(cap)
+    old_idx = jnp.clip(p - n_before, 0, cap - 1)
+    new_idx = jnp.clip(n_before - 1, 0, m - 1)
+    live = p < geom.count + n_new
+    keys = jnp.where(is_new, nkeys[new_idx], geom.keys[old_idx])
+    slots = jnp.where(is_new, slot_of_new[new_idx], geom.slots[old_idx])
 
-    def append(old, new):
-        return old.at[:, new_slot].set(new[:, nsrc], mode="drop")
+    def append(old, vals):
+        dest = jnp.where(fresh, slot_of_new, cap)
+        return old.at[:, dest].set(vals[:, jnp.minimum(nsrc, m - 1)], mode="drop")
 
     out = dataclasses.replace(
         geom,
-        keys=merge(geom.keys, nkeys, KEY_EMPTY),
-        slots=merge(geom.slots, geom.count + jnp.arange(m, dtype=jnp.int32), 0),
+        keys=jnp.where(live, keys, KEY_EMPTY),
+        slots=jnp.where(live, slots, 0),
         points=append(geom.points, cloud_w.points),
         covs=append(geom.covs, cloud_w.covs),
         normals=append(geom.normals, cloud_w.normals),

@@ -151,14 +151,17 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
             d2 = (q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2 + (q[2] - p[2]) ** 2
             neigh.append(q)
             dist.append(jnp.where(ok, d2, jnp.inf))
-    # rank_o = #{o' : dist_o' < dist_o, or equal and o' < o}; keep rank < k.
-    w = []
-    for o, do in enumerate(dist):
-        if cfg.k >= len(dist):
-            w.append(jnp.isfinite(do).astype(jnp.float32))
-            continue
-        rank = sum(((dq < do) if q_ > o else (dq <= do)).astype(jnp.int32) for q_, dq in enumerate(dist) if q_ != o)
-        w.append(((rank < cfg.k) & jnp.isfinite(do)).astype(jnp.float32))
+    # rank_o = #{o' : dist_o' < dist_o, or equal and o' < o}; keep rank < k. A rolled loop over o'
+    # keeps the program (and its compile time) small.
+    D = jnp.stack(dist)  # (o, hs, ws)
+    order = jnp.arange(len(dist))[:, None, None]
+
+    def count(o2, rank):
+        d2 = D[o2]
+        return rank + ((d2 < D) | ((d2 == D) & (o2 < order))).astype(jnp.int32)
+
+    rank = jax.lax.fori_loop(0, len(dist), count, jnp.zeros(D.shape, jnp.int32))
+    w = list(((rank < cfg.k) & jnp.isfinite(D)).astype(jnp.float32))
     cnt = sum(w)
     inv = 1.0 / jnp.maximum(cnt, 1.0)
     mean = [sum(wi * q[c] for wi, q in zip(w, neigh)) * inv for c in range(3)]

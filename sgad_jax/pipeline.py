@@ -11,6 +11,7 @@ Both are written when the run ends, including when it stops early on bad input (
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import pathlib
@@ -58,7 +59,7 @@ def run(cfg: SLAMConfig, out_dir: str | os.PathLike | None = None, *, track_only
     intr = ds.intrinsics
     tcfg = cfg.track
     state = slam.init_state(tcfg, _initial_pose(ds))
-    step = jax.jit(slam.track_step, static_argnums=0)
+    step = jax.jit(functools.partial(slam.track_step, differentiable=False), static_argnums=0, donate_argnums=1)
 
     poses, stamps, times, iters = [], [], [], []
     last_depth_t = None

@@ -14,7 +14,7 @@ from jaxtyping import Array, Float, Int
 
 from sgad_jax import geometry, gicp, lie
 from sgad_jax.config import TrackConfig
-from sgad_jax.track import track, transform_cloud
+from sgad_jax.track import solve, track, transform_cloud
 from sgad_jax.types import GeometrySet, InsertInfo, Intrinsics, TrackInfo, empty_geometry
 
 
@@ -38,7 +38,13 @@ def init_state(cfg: TrackConfig, T_init: lie.SE3 | None = None) -> SLAMState:
 
 
 def track_step(
-    cfg: TrackConfig, state: SLAMState, depth: Float[Array, "h w"], intr: Intrinsics, dt: Float[Array, ""]
+    cfg: TrackConfig,
+    state: SLAMState,
+    depth: Float[Array, "h w"],
+    intr: Intrinsics,
+    dt: Float[Array, ""],
+    *,
+    differentiable: bool = True,
 ) -> tuple[SLAMState, lie.SE3, TrackInfo, InsertInfo]:
     """Track one frame against T, then add its non-overlapping geometry Gaussians to T.
 
@@ -47,10 +53,14 @@ def track_step(
     ``dt`` is the time between this depth image and the previous one: velocity in time rather than
     per frame, because TUM's depth and colour streams are not synchronised and consecutive frames
     can be 0, 1 or 2 depth images apart.
+
+    With ``differentiable=False`` the pose comes from the solver alone, without the implicit-gradient
+    wrapper of :func:`sgad_jax.track.track` (the host loop does not differentiate; it saves ~2 s of
+    compilation).
     """
     cloud = gicp.frame_points(cfg, depth, intr)
     guess = state.T_prev @ lie.exp(state.velocity * dt) if cfg.constant_velocity else state.T_prev
-    T, info = track(cfg, state.geom, cloud, guess)
+    T, info = (track if differentiable else solve)(cfg, state.geom, cloud, guess)
     geom, ins = geometry.insert(state.geom, transform_cloud(T, cloud))
     moved = dt > 0
     velocity = jnp.where(moved, (state.T_prev.inverse() @ T).log() / jnp.where(moved, dt, 1.0), state.velocity)

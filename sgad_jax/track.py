@@ -97,7 +97,8 @@ def _moved(T: lie.SE3, T_ref: lie.SE3, reach: float) -> Float[Array, ""]:
     return jnp.linalg.norm(d[:3]) + reach * jnp.linalg.norm(d[3:])
 
 
-def _gauss_newton(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3) -> tuple[lie.SE3, TrackInfo]:
+def solve(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3) -> tuple[lie.SE3, TrackInfo]:
+    """Gauss-Newton GICP from ``T0`` (not differentiable: use :func:`track` for gradients)."""
     reach = cfg.max_depth if cfg.max_depth > 0 else 4.0
 
     def step(cand, T):
@@ -167,7 +168,7 @@ def track(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T_guess: lie.S
 
     # The solver runs outside custom_root (whose has_aux path rejects integer diagnostics); the root
     # it found is handed to custom_root, which supplies the implicit derivatives.
-    T_sol, info = _gauss_newton(cfg, geom, cloud, T_guess)
+    T_sol, info = solve(cfg, geom, cloud, T_guess)
     xi_sol = jax.lax.stop_gradient(lie.log(T_sol @ T_guess.inverse()))
 
     def tangent_solve(g, y):
