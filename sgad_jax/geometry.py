@@ -3,7 +3,7 @@
 Layout (see :class:`sgad_jax.types.GeometrySet`): ``keys[:count]`` are the packed voxel keys of the
 active entries in increasing order, ``slots`` points to each entry's data (stored in insertion
 order). Lookups are ``searchsorted`` on ``keys``; insertion appends the data and merges the sorted
-new keys (and their slots) in with one scatter.
+new keys (and their slots) in with one gather per array.
 DESIGN.md measured this at 0.4 ms per 12k queries against 1M entries on XLA:CPU, where a k-d tree
 is not an option and a fixed-size spatial hash overflowed.
 
