@@ -17,8 +17,6 @@ small_gicp_ate_cm (ATE RMSE, SE(3)-aligned), ours_compile_s, frames, and the set
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import functools
 import json
 import os
 import sys
@@ -60,6 +58,37 @@ def _small_gicp_track(depths, intr, T0, stride, k, voxel, max_corr, threads):
     return np.stack(poses), np.asarray(times)
 
 
+def _median_ms(f, *args, repeats=20) -> float:
+    import jax
+
+    jax.block_until_ready(f(*args))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(*args))
+        times.append(time.perf_counter() - t0)
+    return 1000 * float(np.median(times))
+
+
+def _stage_times(tcfg, geom, depth, intr, T) -> dict:
+    """Each stage of our step on its own (medians, ms): where the time goes."""
+    import jax
+
+    from sgad_jax import geometry, gicp
+    from sgad_jax.track import gather_candidates, solve, transform_cloud
+
+    cloud = jax.jit(gicp.frame_points, static_argnums=0)(tcfg, depth, intr)
+    cloud_w = transform_cloud(T, cloud)
+    _, info = solve(tcfg, geom, cloud, T)
+    return {
+        "frame_points": _median_ms(jax.jit(gicp.frame_points, static_argnums=0), tcfg, depth, intr),
+        "candidate_lookup": _median_ms(jax.jit(gather_candidates), geom, cloud_w.points, cloud_w.valid),
+        "solve_from_result": _median_ms(jax.jit(solve, static_argnums=0), tcfg, geom, cloud, T),
+        "solve_iterations": int(info.iterations),
+        "insert": _median_ms(jax.jit(geometry.insert), geom, cloud_w),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True)
@@ -75,14 +104,11 @@ def main() -> None:
     import jax.numpy as jnp
 
     from sgad_jax import pipeline, slam
-    from sgad_jax.cli import _PRESET_FOR_LAYOUT
-    from sgad_jax.config import apply_overrides, load_preset
+    from sgad_jax.cli import resolve_config
     from sgad_jax.eval.ate import ate
-    from sgad_jax.io.datasets import detect_layout, open_dataset
+    from sgad_jax.io.datasets import open_dataset
 
-    cfg = load_preset(args.config or _PRESET_FOR_LAYOUT[detect_layout(args.data)])
-    cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, path=args.data, start=args.start, max_frames=args.max_frames))
-    cfg = apply_overrides(cfg, args.overrides)
+    cfg = resolve_config(args.config, args.data, start=args.start, max_frames=args.max_frames, overrides=args.overrides)
     ds = open_dataset(cfg.data)
     samples = [ds[i] for i in range(len(ds))]  # read everything first: timings exclude file I/O
     depths = [s.depth for s in samples]
@@ -93,20 +119,23 @@ def main() -> None:
     tcfg = cfg.track
 
     # Ours: compile once, then time each frame.
-    state = slam.init_state(tcfg, pipeline._initial_pose(ds))
+    state = slam.init_state(tcfg, pipeline.initial_pose(ds))
     t0 = time.perf_counter()
-    step = jax.jit(functools.partial(slam.track_step, differentiable=False), static_argnums=0, donate_argnums=1).lower(tcfg, state, jnp.asarray(depths[0]), intr, dts[0]).compile()
+    step = pipeline.compile_step(tcfg, state, jnp.asarray(depths[0]), intr, dts[0])
     compile_s = time.perf_counter() - t0
     ours, ours_t = [], []
+    iters = []
     for depth, dt in zip(depths, dts):
         t0 = time.perf_counter()
-        state, T, _, _ = step(state, jnp.asarray(depth), intr, dt)
+        state, T, info, _ = step(state, jnp.asarray(depth), intr, dt)
         pose = np.asarray(T.as_matrix())
         ours_t.append(time.perf_counter() - t0)
         ours.append(pose)
+        iters.append(int(info.iterations))
     ours = np.stack(ours)
+    stages = _stage_times(tcfg, state.geom, jnp.asarray(depths[len(depths) // 2]), intr, T)
 
-    T0 = np.asarray(pipeline._initial_pose(ds).as_matrix(), np.float64)
+    T0 = np.asarray(pipeline.initial_pose(ds).as_matrix(), np.float64)
     peer, peer_t = _small_gicp_track(depths, intr, T0, tcfg.stride, tcfg.k, args.peer_voxel, 2 * args.peer_voxel, args.threads)
 
     ours_ms = 1000 * float(np.median(ours_t[1:]))
@@ -123,6 +152,8 @@ def main() -> None:
         "ours_ate_cm": 100 * ate(ours, gt)["rmse_m"],
         "small_gicp_ate_cm": 100 * ate(peer, gt)["rmse_m"],
         "ours_compile_s": compile_s,
+        "ours_iterations_mean": float(np.mean(iters[1:])),
+        "ours_stage_ms": stages,
         "small_gicp_voxel_m": args.peer_voxel,
         "threads": args.threads,
         "jax_backend": jax.default_backend(),

@@ -34,27 +34,25 @@ def _parser() -> argparse.ArgumentParser:
 _PRESET_FOR_LAYOUT = {"tum": "tum", "replica": "replica", "7scenes": "7scenes", "scannet": "scannet", "scannetpp": "scannetpp", "generic": "tum", "synthetic": "demo"}
 
 
-def _resolve_config(args):
+def resolve_config(preset=None, data=None, *, start=None, stride=None, max_frames=None, overrides=()):
+    """The config of a run: the preset (by default the one for the data's layout, or the demo),
+    the data folder and frame selection, then the dotted overrides."""
     from sgad_jax.io.datasets import detect_layout
 
-    preset = args.config
     if preset is None:
-        preset = "demo" if not args.data else _PRESET_FOR_LAYOUT[detect_layout(args.data)]
+        preset = "demo" if not data else _PRESET_FOR_LAYOUT[detect_layout(data)]
     cfg = load_preset(preset)
-    data = cfg.data
-    if args.data is not None:
-        data = dataclasses.replace(data, path=args.data)
-    for name, value in (("start", args.start), ("stride", args.stride), ("max_frames", args.max_frames)):
-        if value is not None:
-            data = dataclasses.replace(data, **{name: value})
-    cfg = dataclasses.replace(cfg, data=data)
-    return apply_overrides(cfg, args.overrides)
+    selection = {"path": data, "start": start, "stride": stride, "max_frames": max_frames}
+    cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, **{k: v for k, v in selection.items() if v is not None}))
+    return apply_overrides(cfg, list(overrides))
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        cfg = _resolve_config(args)
+        cfg = resolve_config(
+            args.config, args.data, start=args.start, stride=args.stride, max_frames=args.max_frames, overrides=args.overrides
+        )
         from sgad_jax import pipeline
 
         if not args.track_only:

@@ -57,7 +57,6 @@ class TrackConfig:
     max_iterations: int = 30
     tolerance: float = 5e-4  # stop when the update's translation (m) and rotation (rad) fall below it
     max_correspondence: float = 0.05  # metres between a point and its match in T
-    relookup: float = 0.25  # converged only within relookup * voxel_size of where candidates were looked up
     nn_weight: float = 0.1  # match score (n_b . e)^2 + nn_weight |e|^2: 0 is pure point-to-surface
     constant_velocity: bool = True
 

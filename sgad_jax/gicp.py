@@ -207,6 +207,11 @@ def sym_inverse(c: Float[Array, "6 *m"]) -> Float[Array, "6 *m"]:
     return jnp.stack([a00, a11, a22, a01, a02, a12]) * inv
 
 
+def information(R: Float[Array, "3 3"], cov_a: Float[Array, "6 *m"], cov_b: Float[Array, "6 *m"]) -> Float[Array, "6 *m"]:
+    """The GICP information matrix ``(C_b + R C_a R^T)^-1`` of each correspondence."""
+    return sym_inverse(cov_b + rotate_sym(R, cov_a))
+
+
 def mahalanobis(e: Float[Array, "3 *m"], M: Float[Array, "6 *m"]) -> Float[Array, "*m"]:
     """``e^T M e`` for symmetric ``M`` in six-entry form."""
     x, y, z = e
@@ -224,8 +229,7 @@ def gicp_cost(
 ) -> Float[Array, ""]:
     """``sum_i w_i e_i^T (C_b + R C_a R^T)^-1 e_i`` with ``e_i = R a_i + t - b_i`` (differentiable)."""
     e = transform_points(R, t, src) - dst
-    M = sym_inverse(dst_cov + rotate_sym(R, src_cov))
-    return jnp.sum(jnp.where(weight > 0, weight * mahalanobis(e, M), 0.0))
+    return jnp.sum(jnp.where(weight > 0, weight * mahalanobis(e, information(R, src_cov, dst_cov)), 0.0))
 
 
 def linearise(

@@ -43,10 +43,20 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _initial_pose(ds: Dataset) -> lie.SE3:
+def initial_pose(ds: Dataset) -> lie.SE3:
     """The first frame's ground-truth pose when known (as Gaussian-SLAM does), else identity."""
     T0 = ds.gt_poses[0]
     return lie.from_matrix(T0) if np.isfinite(T0).all() else lie.identity()
+
+
+def compile_step(tcfg, state: slam.SLAMState, depth, intr, dt):
+    """The tracking step compiled once for these shapes: ``step(state, depth, intr, dt)``.
+
+    No derivatives are taken in the host loop, so the plain solver is used, and the state's buffers
+    are donated (the geometry set is updated in place).
+    """
+    step = jax.jit(functools.partial(slam.track_step, differentiable=False), static_argnums=0, donate_argnums=1)
+    return step.lower(tcfg, state, depth, intr, dt).compile()
 
 
 def run(cfg: SLAMConfig, out_dir: str | os.PathLike | None = None, *, track_only: bool = True, progress: bool = True) -> RunResult:
@@ -58,8 +68,7 @@ def run(cfg: SLAMConfig, out_dir: str | os.PathLike | None = None, *, track_only
     ds = open_dataset(cfg.data)
     intr = ds.intrinsics
     tcfg = cfg.track
-    state = slam.init_state(tcfg, _initial_pose(ds))
-    step = jax.jit(functools.partial(slam.track_step, differentiable=False), static_argnums=0, donate_argnums=1)
+    state = slam.init_state(tcfg, initial_pose(ds))
 
     poses, stamps, times, iters = [], [], [], []
     last_depth_t = None
@@ -74,7 +83,7 @@ def run(cfg: SLAMConfig, out_dir: str | os.PathLike | None = None, *, track_only
             last_depth_t = sample.depth_timestamp
             if compile_s is None:
                 t0 = time.perf_counter()
-                compiled = step.lower(tcfg, state, depth, intr, dt).compile()
+                compiled = compile_step(tcfg, state, depth, intr, dt)
                 compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
             state, T, info, _ = compiled(state, depth, intr, dt)

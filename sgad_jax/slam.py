@@ -10,7 +10,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Float
 
 from sgad_jax import geometry, gicp, lie
 from sgad_jax.config import TrackConfig
@@ -26,7 +26,6 @@ class SLAMState:
     geom: GeometrySet
     T_prev: lie.SE3  # pose of the last tracked frame
     velocity: Float[Array, "6"]  # body-frame twist per unit time of the last motion with dt > 0
-    frames: Int[Array, ""]  # frames tracked so far
 
 
 def init_state(cfg: TrackConfig, T_init: lie.SE3 | None = None) -> SLAMState:
@@ -34,7 +33,7 @@ def init_state(cfg: TrackConfig, T_init: lie.SE3 | None = None) -> SLAMState:
     T_init = lie.identity() if T_init is None else T_init
     origin = T_init.translation()
     geom = empty_geometry(cfg.capacity, cfg.voxel_size, origin)
-    return SLAMState(geom=geom, T_prev=T_init, velocity=jnp.zeros(6), frames=jnp.zeros((), jnp.int32))
+    return SLAMState(geom=geom, T_prev=T_init, velocity=jnp.zeros(6))
 
 
 def track_step(
@@ -64,5 +63,5 @@ def track_step(
     geom, ins = geometry.insert(state.geom, transform_cloud(T, cloud))
     moved = dt > 0
     velocity = jnp.where(moved, (state.T_prev.inverse() @ T).log() / jnp.where(moved, dt, 1.0), state.velocity)
-    new = SLAMState(geom=geom, T_prev=T, velocity=velocity, frames=state.frames + 1)
+    new = SLAMState(geom=geom, T_prev=T, velocity=velocity)
     return new, T, info, ins

@@ -87,8 +87,11 @@ def cost(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T_wc: lie.SE3) 
     q = lie.transform_points(R, t, cloud.points)
     cand = gather_candidates(geom, jax.lax.stop_gradient(q), cloud.valid)
     e, cov_b, found = match(cfg, cand, q)
-    M = gicp.sym_inverse(cov_b + gicp.rotate_sym(R, cloud.covs))
-    return jnp.sum(jnp.where(found, gicp.mahalanobis(e, M), 0.0))
+    return jnp.sum(jnp.where(found, gicp.mahalanobis(e, gicp.information(R, cloud.covs, cov_b)), 0.0))
+
+
+# Candidates looked up at pose T_ref serve while the pose stays within this many voxels of T_ref.
+_FRESH = 0.25
 
 
 def _moved(T: lie.SE3, T_ref: lie.SE3, reach: float) -> Float[Array, ""]:
@@ -105,7 +108,7 @@ def solve(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3) -
         R, t = lie.rotation_components(T)
         q = lie.transform_points(R, t, cloud.points)
         e, cov_b, found = match(cfg, cand, q)
-        M = gicp.sym_inverse(cov_b + gicp.rotate_sym(R, cloud.covs))
+        M = gicp.information(R, cloud.covs, cov_b)
         H, g, c = gicp.linearise(q, e, M, found.astype(jnp.float32))
         n_in = jnp.sum(found).astype(jnp.int32)
         enough = n_in >= 6
@@ -126,15 +129,18 @@ def solve(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3) -
             T, done, c, n_in = step(cand, T)
             return T, it + 1, done, c, n_in
 
+        def near(T):
+            return _moved(T, T_ref, reach) < _FRESH * geom.voxel_size
+
         def fresh(s):
             T, it, done, _, _ = s
-            return (it < cfg.max_iterations) & ~done & (_moved(T, T_ref, reach) < 0.25 * geom.voxel_size)
+            return (it < cfg.max_iterations) & ~done & near(T)
 
         # One step always (so that a non-finite pose cannot stall the outer loop), then more while
         # the candidates are still fresh. Convergence counts only if the pose ended close to where
         # the candidates were looked up: candidates from afar can miss the nearest Gaussians.
         T, it, done, c, n_in = jax.lax.while_loop(fresh, inner, inner(state))
-        return T, it, done & (_moved(T, T_ref, reach) < cfg.relookup * geom.voxel_size), c, n_in
+        return T, it, done & near(T), c, n_in
 
     def more(state):
         return (state[1] < cfg.max_iterations) & ~state[2]

@@ -110,16 +110,21 @@ def test_frame_points_plane_normals():
     assert np.allclose(np.einsum("i,nij,j->n", n, C, n), 1e-3, rtol=0.05)
 
 
+def _pairs(seed, m):
+    """Random point pairs ``a, b`` (3, m), SPD matrices ``Ca, Cb`` (6, m), weights and a pose (float64)."""
+    rng = np.random.default_rng(seed)
+    sym = lambda offset: gicp.mat_to_sym(jnp.asarray(np.stack([_spd(s + offset) for s in range(m)])))  # noqa: E731
+    return (
+        jnp.asarray(rng.normal(size=(3, m))), jnp.asarray(rng.normal(size=(3, m))), sym(0), sym(100),
+        jnp.asarray(rng.uniform(0.1, 1, m)), lie.exp(jnp.asarray(rng.normal(size=6) * 0.3)),
+    )
+
+
 def test_linearise_matches_autodiff():
     """H = J^T M J and g = J^T M e with J = d e / d xi (left perturbation), from jax.jacfwd."""
     with jax.enable_x64(True):
-        rng = np.random.default_rng(2)
         m = 7
-        a = jnp.asarray(rng.normal(size=(3, m)))
-        b = jnp.asarray(rng.normal(size=(3, m)))
-        M = gicp.mat_to_sym(jnp.asarray(np.stack([np.linalg.inv(_spd(s)) for s in range(m)])))
-        w = jnp.asarray(rng.uniform(0, 1, m))
-        T = lie.exp(jnp.asarray(rng.normal(size=6) * 0.3))
+        a, b, M, _, w, T = _pairs(2, m)
 
         def residual(xi):
             R, t = lie.rotation_components(lie.exp(xi) @ T)
@@ -140,14 +145,7 @@ def test_linearise_matches_autodiff():
 def test_gicp_cost_gradient_matches_finite_differences():
     """Gradient of the GICP cost (M depends on R too) with respect to the pose, in float64."""
     with jax.enable_x64(True):
-        rng = np.random.default_rng(3)
-        m = 20
-        a = jnp.asarray(rng.normal(size=(3, m)))
-        b = jnp.asarray(rng.normal(size=(3, m)))
-        Ca = gicp.mat_to_sym(jnp.asarray(np.stack([_spd(s) for s in range(m)])))
-        Cb = gicp.mat_to_sym(jnp.asarray(np.stack([_spd(s + 100) for s in range(m)])))
-        w = jnp.ones(m)
-        T = lie.exp(jnp.asarray(rng.normal(size=6) * 0.3))
+        a, b, Ca, Cb, w, T = _pairs(3, 20)
 
         def f(xi):
             R, t = lie.rotation_components(lie.exp(xi) @ T)

@@ -57,7 +57,7 @@ def test_recovers_known_pose_exactly(scene):
 
 @pytest.mark.parametrize("j", [1, 3])
 def test_tracks_another_view(scene, j):
-    """A later frame (2-5 cm away) against T of frame 0, from the previous pose as guess."""
+    """A later frame (1.5-6 cm away) against T of frame 0, from the previous pose as guess."""
     ds, geom, cloud0, T0 = scene
     cloud = gicp.frame_points(CFG, jnp.asarray(ds[j].depth), ds.intrinsics)
     T, info = track(CFG, geom, cloud, lie.from_matrix(ds.gt_poses[j - 1]))
@@ -84,8 +84,8 @@ def test_cost_gradient_matches_finite_differences(scene):
     T = lie.exp(jnp.array([0.003, -0.002, 0.001, 0.001, 0.0, -0.001])) @ T0
     f = lambda xi: cost(CFG, geom, cloud0, lie.exp(xi) @ T)  # noqa: E731
     grad = jax.grad(f)(jnp.zeros(6))
-    # Correspondences are piecewise constant in the pose: hold them (as the cost's gradient does) by
-    # differencing the cost with the candidates picked at T.
+    # Correspondences are piecewise constant in the pose and re-picked at every evaluation: with a
+    # 0.2 mm step few of them switch, hence the 2 % tolerance.
     h = 2e-4
     fd = np.array([(f(h * e) - f(-h * e)) / (2 * h) for e in np.eye(6)])
     np.testing.assert_allclose(grad, fd, rtol=0.02, atol=0.02 * np.abs(fd).max())
