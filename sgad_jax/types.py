@@ -94,15 +94,31 @@ def make_frame(rgb, depth, depth_filled=None) -> Frame:
 class PixelGaussians:
     """The pixel-aligned Gaussians of one frame (SGAD-SLAM, Sec. 3): one per pixel, on its ray.
 
-    Gaussian (v, u) sits at depth ``|depth + offset|`` along the ray of pixel (v, u) of the frame it
-    was made from; it is isotropic with the given ``radius`` (metres).
+    Gaussian (v, u) sits at z-depth ``|depth + offset|`` on the ray of pixel (v, u) of the frame it was
+    made from, in that frame's camera. It is isotropic. The learnable fields are stored the way they
+    are optimised: ``rgb`` linear colour, ``log_radius`` (radius in metres = ``exp``), ``opacity_logit``
+    (opacity = ``sigmoid``), ``offset`` (metres along the ray, in z). ``depth`` is the (inpainted)
+    measured depth, a constant.
     """
 
     rgb: Float[Array, "*b h w 3"]
-    radius: Float[Array, "*b h w"]
-    opacity: Float[Array, "*b h w"]
+    log_radius: Float[Array, "*b h w"]
+    opacity_logit: Float[Array, "*b h w"]
     offset: Float[Array, "*b h w"]
     depth: Float[Array, "*b h w"]
+
+    @property
+    def radius(self) -> Float[Array, "*b h w"]:
+        return jnp.exp(self.log_radius)
+
+    @property
+    def opacity(self) -> Float[Array, "*b h w"]:
+        return jax.nn.sigmoid(self.opacity_logit)
+
+    @property
+    def z(self) -> Float[Array, "*b h w"]:
+        """Depth of each Gaussian's centre in its own camera."""
+        return jnp.abs(self.depth + self.offset)
 
 
 @_pytree
