@@ -26,6 +26,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--stride", type=int, default=None, help="take every N-th frame")
     r.add_argument("--max-frames", type=int, default=None, help="at most N frames")
     r.add_argument("--track-only", action="store_true", help="run the geometry branch (tracking) alone")
+    r.add_argument("--save-renders", action="store_true", help="write every frame's rendered colour and depth to OUT/renders/")
     r.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a config field, e.g. --set track.stride=10 (repeatable)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -55,14 +56,13 @@ def main(argv: list[str] | None = None) -> int:
         )
         from sgad_jax import pipeline
 
-        if not args.track_only:
-            print("note: the mapping branch is not implemented yet; running tracking only", file=sys.stderr)
-        result = pipeline.run(cfg, args.out, track_only=args.track_only, progress=not args.quiet)
+        result = pipeline.run(cfg, args.out, track_only=args.track_only, save_renders=args.save_renders, progress=not args.quiet)
     except (ConfigError, DatasetError) as err:
         print(f"sgad-jax: error: {err}", file=sys.stderr)
         return 2
     m = result.metrics
-    summary = {k: m[k] for k in ("frames", "ate_rmse_cm", "ate_mean_cm", "track_ms_median", "compile_s", "peak_rss_mb")}
+    keys = ("frames", "ate_rmse_cm", "ate_mean_cm", "track_ms_median", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "map_s_per_frame", "compile_s", "peak_rss_mb")
+    summary = {k: m[k] for k in keys if k in m}
     print(json.dumps(summary))
     print(f"wrote {args.out}/trajectory.txt and {args.out}/metrics.json", file=sys.stderr)
     return 0

@@ -75,7 +75,10 @@ class MapConfig:
     weight_l1: float = 0.8
     weight_ssim: float = 0.2
     weight_depth: float = 1.0
-    learn_offset: bool = True
+    learn_offset: bool = True  # False: Gaussians stay at the measured depth (the paper's ablation)
+    render_init: bool = False  # refine the pose guess by rendering the previous frame's Gaussians
+    render_init_iterations: int = 30
+    psnr_protocol: str = "whole"  # whole | valid (valid-depth pixels) | zeroed (invalid pixels zeroed)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -3,7 +3,12 @@
 Outputs in ``out_dir``:
     ``trajectory.txt``  TUM format ``timestamp tx ty tz qx qy qz qw``, camera-to-world, one line per frame.
     ``metrics.json``    frames, ATE (RMSE and mean, Horn SE(3) alignment) when ground truth exists,
-                        steady-state tracking time, compile time, peak RSS, the resolved config.
+                        steady-state tracking time, compile time, peak RSS, the resolved config;
+                        unless tracking only: the mean PSNR / SSIM / MS-SSIM / LPIPS and rendered
+                        depth L1 (cm, valid pixels) of every frame's render along the estimated
+                        trajectory, and the mapping time per frame.
+    ``renders/``        with ``save_renders``: ``rgb_XXXXXX.png`` and ``depth_XXXXXX.png`` (16-bit,
+                        millimetres) of every frame, XXXXXX its 0-based index in the run.
 Both are written when the run ends, including when it stops early on bad input (then with
 ``"stopped": "<the error>"``), so that no computed result is lost.
 """
@@ -21,15 +26,19 @@ import time
 
 import jax
 import jax.numpy as jnp
+import cv2
 import numpy as np
 from tqdm import tqdm
 
 from sgad_jax import lie, slam
+from sgad_jax import map as mapping
+from sgad_jax.eval import image
 from sgad_jax.config import SLAMConfig, to_dict
 from sgad_jax.eval.ate import ate
 from sgad_jax.io.base import Dataset, DatasetError
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import write_tum_trajectory
+from sgad_jax.types import make_frame
 
 
 @dataclasses.dataclass
@@ -49,17 +58,118 @@ def initial_pose(ds: Dataset) -> lie.SE3:
     return lie.from_matrix(T0) if np.isfinite(T0).all() else lie.identity()
 
 
-def compile_step(tcfg, state: slam.SLAMState, depth, intr, dt):
+def compile_step(tcfg, state: slam.SLAMState, depth, intr, dt, guess=None):
     """The tracking step compiled once for these shapes: ``step(state, depth, intr, dt)``.
 
     No derivatives are taken in the host loop, so the plain solver is used, and the state's buffers
     are donated (the geometry set is updated in place).
     """
     step = jax.jit(functools.partial(slam.track_step, differentiable=False), static_argnums=0, donate_argnums=1)
-    return step.lower(tcfg, state, depth, intr, dt).compile()
+    return step.lower(tcfg, state, depth, intr, dt, guess).compile()
 
 
-def run(cfg: SLAMConfig, out_dir: str | os.PathLike | None = None, *, track_only: bool = True, progress: bool = True) -> RunResult:
+class _Mapper:
+    """The appearance branch of the host loop: maps each tracked frame against its ``n`` previous
+    frames, renders it, scores the render and keeps only what the next frames need."""
+
+    def __init__(self, cfg: SLAMConfig, intr, out: pathlib.Path | None, save_renders: bool):
+        self.cfg, self.intr = cfg, intr
+        self.n = cfg.map.neighbours
+        self.renders = out / "renders" if (save_renders and out is not None) else None
+        if self.renders is not None:
+            self.renders.mkdir(parents=True, exist_ok=True)
+        self.recent: list[tuple] = []  # (frame, pose, gaussians) of the last n frames, newest first
+        self.step = None
+        self.refine = None
+        self.compile_s = 0.0
+        self.scores: dict[str, list[float]] = {k: [] for k in ("psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm")}
+        self.seconds: list[float] = []
+        self.lpips_missing: str | None = None
+
+    def _neighbours(self, frame, pose):
+        have = self.recent[: self.n]
+        pad = [(frame, pose, None)] * (self.n - len(have))
+        frames = [f for f, _, _ in have] + [f for f, _, _ in pad]
+        poses = [p for _, p, _ in have] + [p for _, p, _ in pad]
+        g_fill = self.recent[0][2] if have else None
+        gs = [g for _, _, g in have] + [g_fill] * len(pad)
+        stack = lambda *xs: jnp.stack(xs)  # noqa: E731
+        present = jnp.asarray([True] * len(have) + [False] * len(pad))
+        if g_fill is None:
+            gs = [mapping.init_gaussians(frame, self.intr)] * self.n
+        return jax.tree.map(stack, *frames), jax.tree.map(stack, *poses), jax.tree.map(stack, *gs), present
+
+    def refine_guess(self, frame, guess):
+        """Rendering-based initialisation of the pose guess from the previous frame's Gaussians."""
+        if not self.recent:
+            return guess
+        if self.refine is None:
+            t0 = time.perf_counter()
+            fn = functools.partial(mapping.refine_pose, self.cfg.map, iterations=self.cfg.map.render_init_iterations)
+            _, pose_prev, g_prev = self.recent[0]
+            self.refine = jax.jit(fn).lower(g_prev, pose_prev, frame, guess, self.intr).compile()
+            self.compile_s += time.perf_counter() - t0
+        _, pose_prev, g_prev = self.recent[0]
+        return self.refine(g_prev, pose_prev, frame, guess, self.intr)
+
+    def __call__(self, index: int, sample, pose_matrix: np.ndarray) -> None:
+        frame = make_frame(sample.rgb, sample.depth, sample.depth_filled)
+        pose = lie.from_matrix(pose_matrix)
+        args = (frame, pose, *self._neighbours(frame, pose), self.intr)
+        if self.step is None:
+            t0 = time.perf_counter()
+            self.step = jax.jit(functools.partial(slam.map_step, self.cfg.map)).lower(*args).compile()
+            self.compile_s += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        g, out, _ = self.step(*args)
+        jax.block_until_ready(g)
+        self.seconds.append(time.perf_counter() - t0)
+        self.recent = [(frame, pose, g)] + self.recent[: self.n - 1]
+        self._score(index, frame, out)
+
+    def _score(self, index: int, frame, out) -> None:
+        rgb = np.clip(np.asarray(out.rgb), 0.0, 1.0)
+        depth = np.asarray(out.depth)
+        target, valid = np.asarray(frame.rgb), np.asarray(frame.valid)
+        self.scores["psnr"].append(float(image.psnr(rgb, target, valid, protocol=self.cfg.map.psnr_protocol)))
+        self.scores["ssim"].append(float(image.ssim(rgb, target)))
+        if min(rgb.shape[:2]) >= image.MS_SSIM_MIN_SIZE:
+            self.scores["ms_ssim"].append(float(image.ms_ssim(rgb, target)))
+        if self.lpips_missing is None:
+            try:
+                self.scores["lpips"].append(float(image.lpips(rgb, target)))
+            except image.LPIPSUnavailable as err:
+                self.lpips_missing = str(err)
+                print(f"warning: {err}", file=sys.stderr)
+        if valid.any():
+            self.scores["depth_l1_cm"].append(100.0 * float(np.abs(depth - np.asarray(frame.depth))[valid].mean()))
+        if self.renders is not None:
+            cv2.imwrite(str(self.renders / f"rgb_{index:06d}.png"), cv2.cvtColor((rgb * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
+            mm = np.clip(depth * 1000.0 + 0.5, 0, 65535).astype(np.uint16)
+            cv2.imwrite(str(self.renders / f"depth_{index:06d}.png"), mm)
+
+    def metrics(self) -> dict:
+        mean = lambda xs: float(np.mean(xs)) if xs else None  # noqa: E731
+        out = {k: mean(v) for k, v in self.scores.items()}
+        out.update(
+            psnr_protocol=self.cfg.map.psnr_protocol,
+            mapped_frames=len(self.seconds),
+            map_s_per_frame=mean(self.seconds[1:] or self.seconds),
+            map_compile_s=self.compile_s,
+        )
+        if self.lpips_missing:
+            out["lpips_missing"] = self.lpips_missing
+        return out
+
+
+def run(
+    cfg: SLAMConfig,
+    out_dir: str | os.PathLike | None = None,
+    *,
+    track_only: bool = False,
+    save_renders: bool = False,
+    progress: bool = True,
+) -> RunResult:
     """Run SLAM over ``cfg.data`` and write the outputs to ``out_dir`` (if given).
 
     Raises:
@@ -69,24 +179,32 @@ def run(cfg: SLAMConfig, out_dir: str | os.PathLike | None = None, *, track_only
     intr = ds.intrinsics
     tcfg = cfg.track
     state = slam.init_state(tcfg, initial_pose(ds))
+    out = None if out_dir is None else pathlib.Path(out_dir)
+    mapper = None if track_only else _Mapper(cfg, intr, out, save_renders)
+    render_init = mapper is not None and cfg.map.render_init
+    predict = jax.jit(slam.predict, static_argnums=0) if render_init else None
 
     poses, stamps, times, iters = [], [], [], []
     last_depth_t = None
     compile_s = None
     stopped = None
-    bar = tqdm(total=len(ds), desc=f"tracking {ds.name}", unit="frame", disable=not progress, file=sys.stderr)
+    what = "tracking" if track_only else "tracking + mapping"
+    bar = tqdm(total=len(ds), desc=f"{what} {ds.name}", unit="frame", disable=not progress, file=sys.stderr)
     try:
         for i in range(len(ds)):
             sample = ds[i]
             depth = jnp.asarray(sample.depth)
             dt = jnp.float32(0.0 if last_depth_t is None else sample.depth_timestamp - last_depth_t)
             last_depth_t = sample.depth_timestamp
+            guess = None
+            if render_init:
+                guess = mapper.refine_guess(make_frame(sample.rgb, sample.depth, sample.depth_filled), predict(tcfg, state, dt))
             if compile_s is None:
                 t0 = time.perf_counter()
-                compiled = compile_step(tcfg, state, depth, intr, dt)
+                compiled = compile_step(tcfg, state, depth, intr, dt, guess)
                 compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
-            state, T, info, _ = compiled(state, depth, intr, dt)
+            state, T, info, _ = compiled(state, depth, intr, dt, guess)
             pose = np.asarray(T.as_matrix())
             times.append(time.perf_counter() - t0)
             if not np.isfinite(pose).all():
@@ -94,6 +212,8 @@ def run(cfg: SLAMConfig, out_dir: str | os.PathLike | None = None, *, track_only
             poses.append(pose)
             stamps.append(sample.timestamp)
             iters.append(int(info.iterations))
+            if mapper is not None:
+                mapper(i, sample, pose)
             bar.update(1)
     except DatasetError as err:
         stopped = str(err)
@@ -115,14 +235,15 @@ def run(cfg: SLAMConfig, out_dir: str | os.PathLike | None = None, *, track_only
         track_iterations_mean=float(np.mean(iters)) if iters else None,
         geometry_gaussians=int(state.geom.count),
         compile_s=compile_s,
-        peak_rss_mb=peak_rss_mb(),
-        mapping="not run (--track-only)" if track_only else "not implemented yet: tracking only",
-        config=to_dict(cfg),
     )
+    if mapper is None:
+        metrics["mapping"] = "not run (--track-only)"
+    else:
+        metrics.update(mapper.metrics())
+    metrics.update(peak_rss_mb=peak_rss_mb(), config=to_dict(cfg))
     if stopped:
         metrics["stopped"] = stopped
-    if out_dir is not None:
-        out = pathlib.Path(out_dir)
+    if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         write_tum_trajectory(out / "trajectory.txt", stamps_np, poses_np)
         tmp = out / "metrics.json.tmp"

@@ -10,12 +10,13 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
-from sgad_jax import geometry, gicp, lie
-from sgad_jax.config import TrackConfig
+from sgad_jax import geometry, gicp, lie, splat
+from sgad_jax import map as mapping
+from sgad_jax.config import MapConfig, TrackConfig
 from sgad_jax.track import solve, track, transform_cloud
-from sgad_jax.types import GeometrySet, InsertInfo, Intrinsics, TrackInfo, empty_geometry
+from sgad_jax.types import Frame, GeometrySet, InsertInfo, Intrinsics, PixelGaussians, TrackInfo, empty_geometry
 
 
 @jax.tree_util.register_dataclass
@@ -36,18 +37,25 @@ def init_state(cfg: TrackConfig, T_init: lie.SE3 | None = None) -> SLAMState:
     return SLAMState(geom=geom, T_prev=T_init, velocity=jnp.zeros(6))
 
 
+def predict(cfg: TrackConfig, state: SLAMState, dt: Float[Array, ""]) -> lie.SE3:
+    """The pose guess of the next frame: constant velocity ``T_prev exp(v dt)`` (or ``T_prev``)."""
+    return state.T_prev @ lie.exp(state.velocity * dt) if cfg.constant_velocity else state.T_prev
+
+
 def track_step(
     cfg: TrackConfig,
     state: SLAMState,
     depth: Float[Array, "h w"],
     intr: Intrinsics,
     dt: Float[Array, ""],
+    guess: lie.SE3 | None = None,
     *,
     differentiable: bool = True,
 ) -> tuple[SLAMState, lie.SE3, TrackInfo, InsertInfo]:
     """Track one frame against T, then add its non-overlapping geometry Gaussians to T.
 
-    The first frame meets an empty T and keeps its initial pose. The guess is the constant-velocity
+    The first frame meets an empty T and keeps its initial pose. The guess (unless given, e.g. by
+    :func:`sgad_jax.map.refine_pose`) is the constant-velocity
     prediction ``T_prev exp(v dt)`` (or ``T_prev`` when ``cfg.constant_velocity`` is off), where
     ``dt`` is the time between this depth image and the previous one: velocity in time rather than
     per frame, because TUM's depth and colour streams are not synchronised and consecutive frames
@@ -58,10 +66,40 @@ def track_step(
     compilation).
     """
     cloud = gicp.frame_points(cfg, depth, intr)
-    guess = state.T_prev @ lie.exp(state.velocity * dt) if cfg.constant_velocity else state.T_prev
+    guess = predict(cfg, state, dt) if guess is None else guess
     T, info = (track if differentiable else solve)(cfg, state.geom, cloud, guess)
     geom, ins = geometry.insert(state.geom, transform_cloud(T, cloud))
     moved = dt > 0
     velocity = jnp.where(moved, (state.T_prev.inverse() @ T).log() / jnp.where(moved, dt, 1.0), state.velocity)
     new = SLAMState(geom=geom, T_prev=T, velocity=velocity)
     return new, T, info, ins
+
+
+def map_step(
+    cfg: MapConfig,
+    frame: Frame,
+    pose: lie.SE3,
+    neighbours: Frame,
+    neighbour_poses: lie.SE3,
+    neighbour_gaussians: PixelGaussians,
+    present: Bool[Array, " n"],
+    intr: Intrinsics,
+) -> tuple[PixelGaussians, splat.Render, mapping.MapInfo]:
+    """Map one tracked frame and render its view.
+
+    ``neighbours`` (frames, poses and their mapped Gaussians) are stacked with a fixed count ``n``;
+    ``present`` marks the real ones (the first frames of a run have fewer). Returns the frame's
+    Gaussians, its rendered view (own Gaussians over the neighbours') and the mapping record.
+    """
+    hide = jnp.where(present, 0.0, -1e4)[:, None, None]
+    neighbour_gaussians = dataclasses.replace(neighbour_gaussians, opacity_logit=neighbour_gaussians.opacity_logit + hide)
+    background = mapping.render_neighbours(neighbour_gaussians, neighbour_poses, pose, intr)
+    views = mapping.Views(
+        rgb=jnp.concatenate([frame.rgb[None], neighbours.rgb]),
+        depth=jnp.concatenate([frame.depth[None], neighbours.depth]),
+        valid=jnp.concatenate([frame.valid[None], neighbours.valid]),
+        pose=jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), pose, neighbour_poses),
+        present=jnp.concatenate([jnp.ones(1, bool), present]),
+    )
+    g, info = mapping.map_frame(cfg, mapping.init_gaussians(frame, intr), pose, views, intr, background)
+    return g, mapping.render_frame(g, pose, background, intr), info

@@ -49,7 +49,8 @@ from sgad_jax.types import Intrinsics, PixelGaussians
 ATTRS = ("u", "v", "z", "conic_a", "conic_b", "conic_c", "opacity", "r", "g", "b")
 NUM_ATTRS = len(ATTRS)
 NEAR = 0.01  # metres; Gaussians closer than this to the camera are culled
-DILATION = 0.3  # pixels^2 added to the projected covariance (3DGS's low-pass filter)
+DILATION = 0.1  # pixels^2 added to the projected covariance (3DGS's low-pass filter)
+RADIUS_SIGMAS = 3.0  # a Gaussian's radius is its 3-sigma extent (as a 3DGS splat's screen radius)
 MAX_ALPHA = 0.99
 _EMPTY = jnp.iinfo(jnp.int32).max
 
@@ -88,7 +89,7 @@ def project(
     u = intr.fx * x * iz + intr.cx
     v = intr.fy * y * iz + intr.cy
     # EWA: Sigma_2D = r^2 J J^T + dilation, J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]].
-    r2 = jnp.square(g.radius) * iz * iz
+    r2 = jnp.square(g.radius / RADIUS_SIGMAS) * iz * iz
     xz, yz = x * iz, y * iz
     s_uu = r2 * intr.fx**2 * (1.0 + xz * xz) + DILATION
     s_vv = r2 * intr.fy**2 * (1.0 + yz * yz) + DILATION

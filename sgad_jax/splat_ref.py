@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from sgad_jax import lie
-from sgad_jax.splat import DILATION, MAX_ALPHA, NEAR, Render
+from sgad_jax.splat import DILATION, MAX_ALPHA, NEAR, RADIUS_SIGMAS, Render
 from sgad_jax.types import Intrinsics, PixelGaussians
 
 
@@ -38,7 +38,7 @@ def _gaussians_in_view(gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, i
         [jnp.stack([intr.fx / z, zero, -intr.fx * x / z**2], -1), jnp.stack([zero, intr.fy / z, -intr.fy * y / z**2], -1)],
         -2,
     )  # (n, 2, 3)
-    r2 = (gs.radius**2).reshape(-1)
+    r2 = ((gs.radius / RADIUS_SIGMAS) ** 2).reshape(-1)
     cov = r2[:, None, None] * (J @ jnp.swapaxes(J, -1, -2)) + DILATION * jnp.eye(2, dtype=z.dtype)
     conic = jnp.linalg.inv(cov)
     opacity = jnp.where(z > NEAR, gs.opacity.reshape(-1), 0.0)

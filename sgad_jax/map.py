@@ -1,0 +1,238 @@
+"""Mapping: learn a frame's pixel-aligned Gaussians (colour, radius, opacity, depth offset).
+
+``map_frame`` is pure: it takes a frame's initial Gaussians, its pose and the views it is fitted to
+(its own first, then its neighbours), and returns the optimised Gaussians. Jit it, ``vmap`` it over
+frames (their mapping is independent once they are tracked) or differentiate through it.
+
+The loss is SGAD-SLAM's ``rho L1 + tau (1 - SSIM) + sigma U L1_depth`` between a view and the
+frame's Gaussians rendered into it (:func:`sgad_jax.losses.mapping_loss`); in a neighbour's view
+it is taken over the pixels the frame's Gaussians cover. Neighbours' Gaussians are never changed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jaxtyping import Array, Bool, Float, Int
+
+from sgad_jax import lie, losses, splat
+from sgad_jax.config import MapConfig
+from sgad_jax.types import Frame, Intrinsics, PixelGaussians
+
+#: Opacity of a new Gaussian.
+INIT_OPACITY = 0.9
+#: A neighbour view's pixel counts in the loss where the frame's Gaussians cover it this much.
+COVERAGE = 0.5
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Views:
+    """The views a frame is fitted to, stacked ``(v, ...)``: index 0 is the frame itself.
+
+    ``present[k]`` is False for missing neighbours (the first frames of a run); they are skipped.
+    """
+
+    rgb: Float[Array, "v h w 3"]
+    depth: Float[Array, "v h w"]
+    valid: Bool[Array, "v h w"]
+    pose: lie.SE3
+    present: Bool[Array, " v"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class MapInfo:
+    loss: Float[Array, " n"]  # the loss of every iteration
+    view: Int[Array, " n"]  # the view each iteration used (0: own)
+
+
+def init_gaussians(frame: Frame, intr: Intrinsics, *, opacity: float = INIT_OPACITY) -> PixelGaussians:
+    """One Gaussian per pixel at the inpainted depth, radius D / f, zero offset."""
+    depth = frame.depth_filled
+    f = 0.5 * (intr.fx + intr.fy)
+    radius = jnp.maximum(depth, 1e-3) / f
+    logit = math.log(opacity / (1.0 - opacity))
+    return PixelGaussians(
+        rgb=frame.rgb,
+        log_radius=jnp.log(radius),
+        opacity_logit=jnp.full_like(depth, logit),
+        offset=jnp.zeros_like(depth),
+        depth=depth,
+    )
+
+
+def make_views(frames: list[Frame], poses: list[lie.SE3], count: int) -> Views:
+    """Stack a frame (first) and its available neighbours, padded to ``count`` views."""
+    present = [True] * len(frames) + [False] * (count - len(frames))
+    frames = frames + [frames[0]] * (count - len(frames))
+    poses = poses + [poses[0]] * (count - len(poses))
+    stack = lambda *xs: jnp.stack(xs)  # noqa: E731
+    return Views(
+        rgb=stack(*[f.rgb for f in frames]),
+        depth=stack(*[f.depth for f in frames]),
+        valid=stack(*[f.valid for f in frames]),
+        pose=jax.tree.map(stack, *poses),
+        present=jnp.asarray(present),
+    )
+
+
+def view_schedule(cfg: MapConfig, views: int) -> np.ndarray:
+    """Which view each iteration uses: the own view in a ``current_view_fraction`` share of
+    iterations (the first one included), spread evenly, the neighbours in turn otherwise."""
+    n, f = cfg.iterations, cfg.current_view_fraction
+    out, k = [], 0
+    for t in range(n):
+        own = views == 1 or math.floor((t + 1) * f + (1 - f)) > math.floor(t * f + (1 - f))
+        if own:
+            out.append(0)
+        else:
+            out.append(1 + k % (views - 1))
+            k += 1
+    return np.asarray(out, np.int32)
+
+
+def optimizer(cfg: MapConfig) -> optax.GradientTransformation:
+    """Adam with the paper's per-attribute learning rates (depth frozen; offset too if disabled)."""
+    labels = PixelGaussians(rgb="rgb", log_radius="radius", opacity_logit="opacity", offset="offset", depth="frozen")
+    return optax.multi_transform(
+        {
+            "rgb": optax.adam(cfg.lr_rgb),
+            "radius": optax.adam(cfg.lr_radius),
+            "opacity": optax.adam(cfg.lr_opacity),
+            "offset": optax.adam(cfg.lr_offset) if cfg.learn_offset else optax.set_to_zero(),
+            "frozen": optax.set_to_zero(),
+        },
+        labels,
+    )
+
+
+def render_into(g: PixelGaussians, pose: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, own, window: int) -> splat.Render:
+    """The frame's Gaussians in a view: the exact own-view layer, or one binned layer elsewhere."""
+
+    def own_view(_):
+        return splat.own_layer(g, pose, intr, view_pose, window=window)
+
+    def other_view(_):
+        attrs = splat.project(g, pose, view_pose, intr).reshape(splat.NUM_ATTRS, -1)
+        return splat.gather_layers(attrs, splat.bin_layers(attrs, intr, 1, window=window))
+
+    return splat.composite(jax.lax.cond(own, own_view, other_view, None), window)
+
+
+def over(front: splat.Render, back: splat.Render) -> splat.Render:
+    """``front`` composited over ``back``."""
+    rest = 1.0 - front.alpha
+    return splat.Render(
+        rgb=front.rgb + rest[..., None] * back.rgb,
+        depth=front.depth + rest * back.depth,
+        alpha=front.alpha + rest * back.alpha,
+    )
+
+
+def view_loss(
+    cfg: MapConfig, g: PixelGaussians, pose: lie.SE3, views: Views, k, intr: Intrinsics, background: splat.Render | None = None, window: int = 3
+):
+    """The mapping loss of the frame's Gaussians in view ``k`` (0: own view, over ``background``)."""
+    view = jax.tree.map(lambda x: x[k], views)
+    out = render_into(g, pose, view.pose, intr, k == 0, window)
+    if background is not None:
+        keep = (k == 0).astype(out.alpha.dtype)
+        out = over(out, jax.tree.map(lambda x: keep * x, background))
+    mask = jnp.where(k == 0, 1.0, (jax.lax.stop_gradient(out.alpha) > COVERAGE).astype(out.alpha.dtype))
+    # Depth is compared after normalising by the accumulated opacity: at a partly covered pixel the
+    # blended depth is short by (1 - alpha) z, which is not a geometric error.
+    depth = out.depth / jnp.maximum(out.alpha, 1e-3)
+    return losses.mapping_loss(
+        out.rgb, depth, view.rgb, view.depth, view.valid, mask,
+        weight_l1=cfg.weight_l1, weight_ssim=cfg.weight_ssim, weight_depth=cfg.weight_depth,
+    )
+
+
+def map_frame(
+    cfg: MapConfig,
+    g: PixelGaussians,
+    pose: lie.SE3,
+    views: Views,
+    intr: Intrinsics,
+    background: splat.Render | None = None,
+    *,
+    window: int = 3,
+) -> tuple[PixelGaussians, MapInfo]:
+    """Optimise a frame's Gaussians ``g`` (at camera-to-world ``pose``) for ``cfg.iterations`` Adam
+    steps on its own view and its neighbours' (``views``, own view first).
+
+    ``background`` is the neighbours' (fixed) Gaussians rendered into the own view; the frame's
+    Gaussians are composited over it there, as in :func:`render_frame`.
+    """
+    schedule = jnp.asarray(view_schedule(cfg, views.present.shape[0]))
+    opt = optimizer(cfg)
+
+    def step(carry, k):
+        g, state = carry
+        k = jnp.where(views.present[k], k, 0)
+        loss, grad = jax.value_and_grad(view_loss, argnums=1)(cfg, g, pose, views, k, intr, background, window)
+        updates, state = opt.update(grad, state, g)
+        return (optax.apply_updates(g, updates), state), (loss, k)
+
+    (g, _), (loss, used) = jax.lax.scan(step, (g, opt.init(g)), schedule)
+    return g, MapInfo(loss=loss, view=used)
+
+
+def render_neighbours(
+    neighbours: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, *, layers: int = 1, window: int = 3
+) -> splat.Render:
+    """Neighbour frames' Gaussians (stacked) rendered into a view: a frame's mapping background."""
+    attrs = splat.project_frames(neighbours, poses, view_pose, intr)
+    return splat.composite(splat.gather_layers(attrs, splat.bin_layers(attrs, intr, layers, window=window)), window)
+
+
+def render_frame(g: PixelGaussians, pose: lie.SE3, background: splat.Render | None, intr: Intrinsics, *, window: int = 3) -> splat.Render:
+    """A frame's view: its own Gaussians composited over its neighbours' (``background``, from
+    :func:`render_neighbours`), the image its mapping loss was fitted to. Own Gaussians come first,
+    neighbours fill what they leave uncovered: each frame's Gaussians are fitted to its own view,
+    so mixing two frames' fits of one surface by depth would blend them."""
+    own = splat.render_own(g, pose, intr, window=window)
+    return own if background is None else over(own, background)
+
+
+def refine_pose(
+    cfg: MapConfig,
+    g_prev: PixelGaussians,
+    pose_prev: lie.SE3,
+    frame: Frame,
+    guess: lie.SE3,
+    intr: Intrinsics,
+    *,
+    iterations: int = 30,
+    lr: float = 2e-3,
+    window: int = 3,
+) -> lie.SE3:
+    """Rendering-based pose initialisation: refine ``guess`` by minimising the photometric and depth
+    error of the previous frame's Gaussians rendered into the current frame (Adam on a left tangent
+    update ``exp(xi) guess``; pixels covered by the render and with valid depth)."""
+    attrs_flat = lambda T: splat.project(g_prev, pose_prev, T, intr).reshape(splat.NUM_ATTRS, -1)  # noqa: E731
+
+    def loss_fn(xi):
+        T = lie.exp(xi) @ guess
+        attrs = attrs_flat(T)
+        out = splat.composite(splat.gather_layers(attrs, splat.bin_layers(attrs, intr, 1, window=window)), window)
+        mask = (jax.lax.stop_gradient(out.alpha) > COVERAGE) & frame.valid
+        return cfg.weight_l1 * losses.l1(out.rgb, frame.rgb, mask) + cfg.weight_depth * losses.depth_l1(out.depth, frame.depth, mask)
+
+    opt = optax.adam(lr)
+    xi0 = jnp.zeros(6, guess.wxyz_xyz.dtype)
+
+    def step(carry, _):
+        xi, state = carry
+        grad = jax.grad(loss_fn)(xi)
+        upd, state = opt.update(grad, state)
+        return (optax.apply_updates(xi, upd), state), None
+
+    (xi, _), _ = jax.lax.scan(step, (xi0, opt.init(xi0)), None, length=iterations)
+    return lie.exp(xi) @ guess
