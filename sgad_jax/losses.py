@@ -34,19 +34,34 @@ def _gauss_kernel(dtype) -> Float[Array, " k"]:
     return k / jnp.sum(k)
 
 
+_TILE = 32
+
+
+def _blur_rows(x: Float[Array, "... n m"]) -> Float[Array, "... n m"]:
+    """Zero-padded 'same' Gaussian filter along axis -2, as tiled matrix products: rows are cut into
+    tiles of 32 (+10 halo rows) and every tile is multiplied by the same 32 x 42 Toeplitz matrix.
+    On XLA:CPU this ran 10-50x faster than a depthwise convolution or 11 shifted slices."""
+    k = _gauss_kernel(x.dtype)
+    p = SSIM_WINDOW // 2
+    n = x.shape[-2]
+    nb = -(-n // _TILE)
+    i = jnp.arange(_TILE)[:, None]
+    j = jnp.arange(_TILE + 2 * p)[None, :]
+    toeplitz = jnp.where((j - i >= 0) & (j - i < SSIM_WINDOW), k[jnp.clip(j - i, 0, SSIM_WINDOW - 1)], 0.0)
+    pad = [(0, 0)] * (x.ndim - 2) + [(p, (nb + 1) * _TILE - n - p), (0, 0)]
+    xp = jnp.pad(x, pad)
+    lead, m = x.shape[:-2], x.shape[-1]
+    main = xp[..., : nb * _TILE, :].reshape(*lead, nb, _TILE, m)
+    halo = xp[..., _TILE : (nb + 1) * _TILE, :].reshape(*lead, nb, _TILE, m)[..., : 2 * p, :]
+    tiles = jnp.concatenate([main, halo], axis=-2)
+    y = jnp.einsum("ij,...bjm->...bim", toeplitz, tiles)
+    return y.reshape(*lead, nb * _TILE, m)[..., :n, :]
+
+
 def _blur_same(x: Float[Array, "c h w"]) -> Float[Array, "c h w"]:
     """Separable 11x11 Gaussian filter with zero padding ('same' output, as 3DGS's conv2d)."""
-    k = _gauss_kernel(x.dtype)
-    c = x.shape[0]
-    dn = ("NCHW", "OIHW", "NCHW")
-    p = SSIM_WINDOW // 2
-    y = jax.lax.conv_general_dilated(
-        x[None], jnp.tile(k[None, None, :, None], (c, 1, 1, 1)), (1, 1), ((p, p), (0, 0)), dimension_numbers=dn, feature_group_count=c
-    )
-    y = jax.lax.conv_general_dilated(
-        y, jnp.tile(k[None, None, None, :], (c, 1, 1, 1)), (1, 1), ((0, 0), (p, p)), dimension_numbers=dn, feature_group_count=c
-    )
-    return y[0]
+    y = _blur_rows(x)
+    return jnp.swapaxes(_blur_rows(jnp.swapaxes(y, -1, -2)), -1, -2)
 
 
 def ssim_map(pred: Float[Array, "h w c"], target: Float[Array, "h w c"]) -> Float[Array, "h w"]:
@@ -56,10 +71,10 @@ def ssim_map(pred: Float[Array, "h w c"], target: Float[Array, "h w c"]) -> Floa
     with valid filtering is :func:`sgad_jax.eval.image.ssim`.
     """
     x, y = jnp.moveaxis(pred, -1, 0), jnp.moveaxis(target, -1, 0)
-    mx, my = _blur_same(x), _blur_same(y)
-    sxx = _blur_same(x * x) - mx * mx
-    syy = _blur_same(y * y) - my * my
-    sxy = _blur_same(x * y) - mx * my
+    mx, my, exx, eyy, exy = _blur_same(jnp.stack([x, y, x * x, y * y, x * y]))
+    sxx = exx - mx * mx
+    syy = eyy - my * my
+    sxy = exy - mx * my
     s = ((2 * mx * my + _C1) * (2 * sxy + _C2)) / ((mx * mx + my * my + _C1) * (sxx + syy + _C2))
     return jnp.mean(s, axis=0)
 

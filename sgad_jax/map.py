@@ -142,9 +142,9 @@ def view_loss(
     view = jax.tree.map(lambda x: x[k], views)
     out = render_into(g, pose, view.pose, intr, k == 0, window)
     if background is not None:
-        keep = (k == 0).astype(out.alpha.dtype)
+        keep = jnp.asarray(k == 0, out.alpha.dtype)
         out = over(out, jax.tree.map(lambda x: keep * x, background))
-    mask = jnp.where(k == 0, 1.0, (jax.lax.stop_gradient(out.alpha) > COVERAGE).astype(out.alpha.dtype))
+    mask = jnp.where(k == 0, 1.0, jnp.asarray(jax.lax.stop_gradient(out.alpha) > COVERAGE, out.alpha.dtype))
     # Depth is compared after normalising by the accumulated opacity: at a partly covered pixel the
     # blended depth is short by (1 - alpha) z, which is not a geometric error.
     depth = out.depth / jnp.maximum(out.alpha, 1e-3)

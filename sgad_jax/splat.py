@@ -222,7 +222,7 @@ def _composite_fwd(layers, window):
     return composite(layers, window), layers
 
 
-BAND_ROWS = 16  # rows per band of the backward pass: its temporaries then stay in cache
+BAND_ROWS = 48  # rows per band of the backward pass: its temporaries then stay in cache
 
 
 def _composite_bwd(window, layers, ct):
@@ -255,6 +255,7 @@ def _composite_bwd(window, layers, ct):
 def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0):
     cands, parts, qs, zs, weights = _forward(layers, window, row0)
     n = len(cands)
+    parts = [list(p) for p in jax.lax.optimization_barrier([jnp.stack(p) for p in parts])]
     # s_j: d loss / d weight_j; ws_j = weight_j s_j.
     ss = [g_rgb[0] * c[7] + g_rgb[1] * c[8] + g_rgb[2] * c[9] + g_depth * zs[j] + g_acc for j, c in enumerate(cands)]
     # Materialise the per-candidate images once: left to itself, XLA fuses (and so recomputes) the
