@@ -215,7 +215,8 @@ def refine_pose(
 ) -> lie.SE3:
     """Rendering-based pose initialisation: refine ``guess`` by minimising the photometric and depth
     error of the previous frame's Gaussians rendered into the current frame (Adam on a left tangent
-    update ``exp(xi) guess``; pixels covered by the render and with valid depth)."""
+    update ``exp(xi) guess``; pixels covered by the render and with valid depth; the binning is
+    redone at every step)."""
     attrs_flat = lambda T: splat.project(g_prev, pose_prev, T, intr).reshape(splat.NUM_ATTRS, -1)  # noqa: E731
 
     def loss_fn(xi):
@@ -223,7 +224,11 @@ def refine_pose(
         attrs = attrs_flat(T)
         out = splat.composite(splat.gather_layers(attrs, splat.bin_layers(attrs, intr, 1, window=window)), window)
         mask = (jax.lax.stop_gradient(out.alpha) > COVERAGE) & frame.valid
-        return cfg.weight_l1 * losses.l1(out.rgb, frame.rgb, mask) + cfg.weight_depth * losses.depth_l1(out.depth, frame.depth, mask)
+        # Colour and depth normalised by the accumulated opacity: at fractional pixel positions the
+        # coverage of a frame's Gaussians dips, which says nothing about the pose.
+        norm = 1.0 / jnp.maximum(out.alpha, 1e-3)
+        rgb, depth = out.rgb * norm[..., None], out.depth * norm
+        return cfg.weight_l1 * losses.l1(rgb, frame.rgb, mask) + cfg.weight_depth * losses.depth_l1(depth, frame.depth, mask)
 
     opt = optax.adam(lr)
     xi0 = jnp.zeros(6, guess.wxyz_xyz.dtype)
