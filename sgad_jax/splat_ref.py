@@ -1,7 +1,7 @@
 """Slow, dense reference renderer: the test oracle of :mod:`sgad_jax.splat`.
 
 Written independently of the fast paths and as plainly as possible: every pixel looks at every
-Gaussian, keeps those whose rounded projected centre is within the K x K window (the image model's
+Gaussian, keeps those whose rounded projected centre is within the diamond window (the image model's
 truncation rule, see :mod:`sgad_jax.splat`), sorts them by depth (ties by index) and composites
 front to back with a cumulative product. Memory is O(pixels x Gaussians): small scenes only.
 """
@@ -55,7 +55,7 @@ def render(
     pv, pu = jnp.meshgrid(jnp.arange(h), jnp.arange(w), indexing="ij")
     p = jnp.stack([pu, pv], -1).reshape(-1, 1, 2).astype(z.dtype)  # (P, 1, 2)
     centre = jnp.round(uv)  # (n, 2)
-    in_window = jnp.all(jnp.abs(p - centre[None]) <= r, axis=-1) & (z[None] > NEAR)  # (P, n)
+    in_window = (jnp.sum(jnp.abs(p - centre[None]), axis=-1) <= r) & (z[None] > NEAR)  # (P, n), the diamond
     d = p - uv[None]  # (P, n, 2)
     power = 0.5 * jnp.einsum("pni,nij,pnj->pn", d, conic, d)
     alpha = jnp.where(in_window, jnp.minimum(opacity[None] * jnp.exp(-power), MAX_ALPHA), 0.0)

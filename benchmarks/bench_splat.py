@@ -1,0 +1,114 @@
+"""Splatting and mapping speed on real frames (no CPU peer exists: every other differentiable
+Gaussian rasteriser needs CUDA).
+
+Times, each as the median of ``--repeats`` calls after one warm-up call whose time is reported as
+compile time:
+
+* the own-view fast path (a frame's Gaussians into its own view) at 640x480 and 320x240, forward
+  and forward + backward (gradient of a scalar loss with respect to every Gaussian attribute);
+* the neighbour path: the current frame's Gaussians and 2 neighbours' into one 640x480 view
+  (binned afresh in every call), forward + backward;
+* one full ``map_frame`` (``--iterations``, default 100) at 320x240 with 2 neighbour views.
+
+Usage::
+
+    python benchmarks/bench_splat.py [--data ../shared/data/tum_fr1_xyz] [--repeats 5]
+
+Prints one JSON object with ``own_640x480_fwd_ms``, ``own_640x480_fwd_bwd_ms``,
+``own_320x240_fwd_ms``, ``own_320x240_fwd_bwd_ms``, ``neighbours2_640x480_fwd_ms``,
+``neighbours2_640x480_fwd_bwd_ms``, ``map_frame_320x240_s``, ``compile_s`` (total; ``compile_s_by_entry`` each) and the
+settings. Without ``--data`` (or when the folder is missing) the built-in synthetic scene is used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+
+def _timed(fn, *args, repeats: int) -> tuple[float, float]:
+    """(compile + first call seconds, median seconds of ``repeats`` further calls)."""
+    import jax
+
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return first, float(np.median(times))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", default=os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz"))
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--iterations", type=int, default=100)
+    args = p.parse_args(argv)
+
+    import jax
+    import jax.numpy as jnp
+
+    from sgad_jax import lie, slam, splat
+    from sgad_jax import map as mapping
+    from sgad_jax.config import DataConfig, MapConfig
+    from sgad_jax.io.datasets import open_dataset
+    from sgad_jax.types import make_frame
+
+    path = args.data if os.path.isdir(args.data) else ""
+    out: dict = {"data": path or "synthetic", "repeats": args.repeats, "iterations": args.iterations, "device": jax.devices()[0].device_kind}
+    compile_s: dict[str, float] = {}
+
+    def load(downscale: int):
+        ds = open_dataset(DataConfig(path=path, downscale=downscale, max_frames=3))
+        frames = [make_frame(ds[i].rgb, ds[i].depth, ds[i].depth_filled) for i in range(3)]
+        poses = [lie.from_matrix(m) if np.isfinite(m).all() else lie.identity() for m in ds.gt_poses[:3]]
+        return ds.intrinsics, frames, poses
+
+    def loss(r: splat.Render):
+        return jnp.sum(r.rgb) + jnp.sum(r.depth) + jnp.sum(r.alpha)
+
+    for downscale in (1, 2):
+        intr, frames, poses = load(downscale)
+        size = f"{intr.width}x{intr.height}"
+        g = mapping.init_gaussians(frames[2], intr)
+        own_fwd = jax.jit(lambda g: splat.render_own(g, poses[2], intr))
+        own_bwd = jax.jit(jax.grad(lambda g: loss(splat.render_own(g, poses[2], intr))))
+        for key, fn in ((f"own_{size}_fwd", own_fwd), (f"own_{size}_fwd_bwd", own_bwd)):
+            compile_s[key], t = _timed(fn, g, repeats=args.repeats)
+            out[key + "_ms"] = 1000 * t
+        if downscale == 1:
+            stack = lambda *xs: jnp.stack(xs)  # noqa: E731
+            gs = jax.tree.map(stack, *[mapping.init_gaussians(f, intr) for f in frames])
+            ps = jax.tree.map(stack, *poses)
+            nb_fwd = jax.jit(lambda gs: splat.render(gs, ps, poses[2], intr))
+            nb_bwd = jax.jit(jax.grad(lambda gs: loss(splat.render(gs, ps, poses[2], intr))))
+            for key, fn in ((f"neighbours2_{size}_fwd", nb_fwd), (f"neighbours2_{size}_fwd_bwd", nb_bwd)):
+                compile_s[key], t = _timed(fn, gs, repeats=args.repeats)
+                out[key + "_ms"] = 1000 * t
+        else:
+            cfg = MapConfig(iterations=args.iterations)
+            stack = lambda *xs: jnp.stack(xs)  # noqa: E731
+            nb = jax.tree.map(stack, frames[1], frames[0])
+            nb_poses = jax.tree.map(stack, poses[1], poses[0])
+            nb_g = jax.tree.map(stack, mapping.init_gaussians(frames[1], intr), mapping.init_gaussians(frames[0], intr))
+            step = jax.jit(lambda f, p, n, np_, ng: slam.map_step(cfg, f, p, n, np_, ng, jnp.ones(2, bool), intr))
+            key = f"map_frame_{size}"
+            compile_s[key], t = _timed(step, frames[2], poses[2], nb, nb_poses, nb_g, repeats=max(1, args.repeats // 2))
+            out[key + "_s"] = t
+    out["compile_s"] = sum(compile_s.values())
+    out["compile_s_by_entry"] = compile_s
+    print(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
