@@ -86,7 +86,8 @@ def project(
     Culled Gaussians (behind the near plane) get opacity 0.
     """
     R, t = lie.rotation_components(dst_pose.inverse() @ src_pose)
-    x, y, z = lie.transform_points(R, t, source_points(g, intr))
+    # Materialised once: XLA would otherwise recompute the transform inside each attribute row.
+    x, y, z = jax.lax.optimization_barrier(lie.transform_points(R, t, source_points(g, intr)))
     front = z > NEAR
     zs = jnp.where(front, z, 1.0)
     iz = 1.0 / zs

@@ -12,7 +12,7 @@ from conftest import shared
 from sgad_jax.cli import main
 from sgad_jax.io.export import read_tum_trajectory
 
-SMALL = ["--set", "data.synthetic.frames=10"]
+SMALL = ["--set", "data.synthetic.frames=10", "--set", "map.iterations=5"]
 
 
 def _run(args, capsys):
@@ -25,7 +25,7 @@ def test_synthetic_run_as_module(tmp_path):
     """`python -m sgad_jax run` on the built-in scene writes a TUM trajectory and metrics."""
     out = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, "-m", "sgad_jax", "run", "--out", str(out), "--max-frames", "6", "--quiet", *SMALL],
+        [sys.executable, "-m", "sgad_jax", "run", "--out", str(out), "--max-frames", "6", "--quiet", "--save-renders", *SMALL],
         capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stderr
@@ -37,6 +37,16 @@ def test_synthetic_run_as_module(tmp_path):
     assert m["frames"] == 6 and m["ate_rmse_cm"] < 0.05
     assert m["config"]["data"]["synthetic"]["frames"] == 10
     assert json.loads(proc.stdout.strip().splitlines()[-1])["frames"] == 6
+    # the appearance branch: image metrics of every frame's render, and the renders themselves
+    for key in ("psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "map_s_per_frame"):
+        assert key in m
+    assert m["mapped_frames"] == 6 and 20.0 < m["psnr"] < 80.0 and 0.5 < m["ssim"] <= 1.0
+    for i in range(6):
+        rgb = cv2.imread(str(out / "renders" / f"rgb_{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+        depth = cv2.imread(str(out / "renders" / f"depth_{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+        assert rgb.shape == (240, 320, 3) and rgb.dtype == np.uint8
+        assert depth.shape == (240, 320) and depth.dtype == np.uint16
+        assert 500 < np.median(depth) < 10000  # millimetres: the room is metres deep
 
 
 def _write_generic(root, n=4, bad=None):
