@@ -138,3 +138,22 @@ def test_rendering_init_recovers_motion_that_gicp_misses():
     guess = refine(MapConfig(), g0, lie.identity(), f1, lie.identity(), intr, iterations=60)
     err = np.linalg.norm(np.asarray(guess.translation() - true1.translation()))
     assert err < 0.005, (err, err_gicp)
+
+
+def test_map_step_compiles_once_for_a_sequence(room):
+    """Fixed shapes: the first frames (fewer neighbours) and later ones share one compiled step."""
+    import chex
+
+    intr, frames, poses = room
+    cfg = MapConfig(iterations=2)
+    traced = chex.assert_max_traces(slam.map_step, n=1)
+    step = jax.jit(lambda *a: traced(cfg, *a, intr))
+    stack = lambda *xs: jnp.stack(xs)  # noqa: E731
+    g_prev = mapping.init_gaussians(frames[0], intr)
+    for i, present in ((1, [True, False]), (2, [True, True])):
+        nb = jax.tree.map(stack, frames[i - 1], frames[0])
+        nb_poses = jax.tree.map(stack, poses[i - 1], poses[0])
+        nb_g = jax.tree.map(stack, g_prev, g_prev)
+        g_prev, out, _ = step(frames[i], poses[i], nb, nb_poses, nb_g, jnp.asarray(present))
+        assert np.isfinite(np.asarray(out.rgb)).all()
+    chex.clear_trace_counter()
