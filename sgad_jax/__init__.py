@@ -6,7 +6,10 @@ Public API (pure functions over pytrees; see README.md):
   :class:`PointCloud`, :class:`TrackInfo`, :class:`InsertInfo`
 * tracking: :func:`frame_points` (geometry Gaussians of a depth image), :func:`track` (GICP on SE(3)
   against the geometry set), :func:`track_cost`, :func:`insert` (add non-overlapping Gaussians)
-* SLAM steps: :class:`SLAMState`, :func:`init_state`, :func:`track_step`
+* splatting and mapping: :func:`render_own` (a frame into its own view), :func:`render` (frames into
+  any view), :func:`init_gaussians`, :func:`map_frame`, :func:`refine_pose` (rendering-based pose
+  initialisation)
+* SLAM steps: :class:`SLAMState`, :func:`init_state`, :func:`track_step`, :func:`map_step`
 * configuration: :class:`SLAMConfig` and its stage configs, :func:`load_preset`
 * host side: :func:`open_dataset`, :func:`run`
 """
@@ -14,7 +17,9 @@ Public API (pure functions over pytrees; see README.md):
 from sgad_jax.config import DataConfig, MapConfig, SLAMConfig, SyntheticConfig, TrackConfig, load_preset
 from sgad_jax.geometry import insert
 from sgad_jax.gicp import frame_points
-from sgad_jax.slam import SLAMState, init_state, track_step
+from sgad_jax.map import MapInfo, Views, init_gaussians, map_frame, refine_pose
+from sgad_jax.slam import SLAMState, init_state, map_step, track_step
+from sgad_jax.splat import Render, render, render_own
 from sgad_jax.track import cost as track_cost
 from sgad_jax.track import track, transform_cloud
 from sgad_jax.types import (
@@ -51,4 +56,5 @@ __all__ = [
     "insert", "frame_points", "SLAMState", "init_state", "track_step", "track_cost", "track",
     "transform_cloud", "Frame", "GeometrySet", "InsertInfo", "Intrinsics", "PixelGaussians",
     "PointCloud", "TrackInfo", "empty_geometry", "make_frame", "make_intrinsics", "open_dataset", "run",
+    "MapInfo", "Views", "init_gaussians", "map_frame", "refine_pose", "map_step", "Render", "render", "render_own",
 ]

@@ -67,21 +67,6 @@ def init_gaussians(frame: Frame, intr: Intrinsics, *, opacity: float = INIT_OPAC
     )
 
 
-def make_views(frames: list[Frame], poses: list[lie.SE3], count: int) -> Views:
-    """Stack a frame (first) and its available neighbours, padded to ``count`` views."""
-    present = [True] * len(frames) + [False] * (count - len(frames))
-    frames = frames + [frames[0]] * (count - len(frames))
-    poses = poses + [poses[0]] * (count - len(poses))
-    stack = lambda *xs: jnp.stack(xs)  # noqa: E731
-    return Views(
-        rgb=stack(*[f.rgb for f in frames]),
-        depth=stack(*[f.depth for f in frames]),
-        valid=stack(*[f.valid for f in frames]),
-        pose=jax.tree.map(stack, *poses),
-        present=jnp.asarray(present),
-    )
-
-
 def view_schedule(cfg: MapConfig, views: int) -> np.ndarray:
     """Which view each iteration uses: the own view in a ``current_view_fraction`` share of
     iterations (the first one included), spread evenly, the neighbours in turn otherwise."""
