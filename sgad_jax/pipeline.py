@@ -33,7 +33,7 @@ from tqdm import tqdm
 from sgad_jax import lie, slam
 from sgad_jax import map as mapping
 from sgad_jax.eval import image
-from sgad_jax.config import SLAMConfig, to_dict
+from sgad_jax.config import ConfigError, SLAMConfig, to_dict
 from sgad_jax.eval.ate import ate
 from sgad_jax.io.base import Dataset, DatasetError
 from sgad_jax.io.datasets import open_dataset
@@ -84,7 +84,20 @@ class _Mapper:
         self.compile_s = 0.0
         self.scores: dict[str, list[float]] = {k: [] for k in ("psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm")}
         self.seconds: list[float] = []
+        if cfg.map.psnr_protocol not in image.PSNR_PROTOCOLS:
+            raise ConfigError(f"map.psnr_protocol must be one of {', '.join(image.PSNR_PROTOCOLS)}, got {cfg.map.psnr_protocol!r}")
         self.lpips_missing: str | None = None
+        try:
+            self.lpips_weights = image.load_lpips_weights()
+        except image.LPIPSUnavailable as err:  # a corrupt weight file
+            self.lpips_weights, self.lpips_missing = None, str(err)
+        if self.lpips_weights is None and self.lpips_missing is None:
+            try:
+                image.lpips(np.zeros((32, 32, 3)), np.zeros((32, 32, 3)))
+            except image.LPIPSUnavailable as err:  # its message says where it looked and what to do
+                self.lpips_missing = str(err)
+        if self.lpips_missing:
+            print(f"warning: LPIPS not computed: {self.lpips_missing}", file=sys.stderr)
 
     def _neighbours(self, frame, pose):
         have = self.recent[: self.n]
@@ -135,12 +148,8 @@ class _Mapper:
         self.scores["ssim"].append(float(image.ssim(rgb, target)))
         if min(rgb.shape[:2]) >= image.MS_SSIM_MIN_SIZE:
             self.scores["ms_ssim"].append(float(image.ms_ssim(rgb, target)))
-        if self.lpips_missing is None:
-            try:
-                self.scores["lpips"].append(float(image.lpips(rgb, target)))
-            except image.LPIPSUnavailable as err:
-                self.lpips_missing = str(err)
-                print(f"warning: {err}", file=sys.stderr)
+        if self.lpips_weights is not None:
+            self.scores["lpips"].append(float(image.lpips(rgb, target, self.lpips_weights)))
         if valid.any():
             self.scores["depth_l1_cm"].append(100.0 * float(np.abs(depth - np.asarray(frame.depth))[valid].mean()))
         if self.renders is not None:

@@ -1,5 +1,28 @@
 """Evaluation metrics."""
 
 from sgad_jax.eval.ate import align_umeyama, ate
+from sgad_jax.eval.image import (
+    LPIPSChecksumError,
+    LPIPSUnavailable,
+    LPIPSWeights,
+    fetch_lpips_weights,
+    load_lpips_weights,
+    lpips,
+    ms_ssim,
+    psnr,
+    ssim,
+)
 
-__all__ = ["align_umeyama", "ate"]
+__all__ = [
+    "LPIPSChecksumError",
+    "LPIPSUnavailable",
+    "LPIPSWeights",
+    "align_umeyama",
+    "ate",
+    "fetch_lpips_weights",
+    "load_lpips_weights",
+    "lpips",
+    "ms_ssim",
+    "psnr",
+    "ssim",
+]

@@ -173,10 +173,14 @@ def _main(ckpt: str, out: str, calibra: str | None) -> None:
     doc = {
         "command": "python tests/data/image_oracle.py ALEXNET_CKPT [PYIQA_RESULTSCALIBRA_DIR] (see the docstring)",
         "versions": {
-            "python": platform.python_version(), "numpy": np.__version__, "torch": torch.__version__,
-            "scikit-image": skimage.__version__, "pytorch_msssim": "1.0.0", "torchmetrics": torchmetrics.__version__,
+            "python": platform.python_version(),
+            "numpy": np.__version__,
+            "torch": torch.__version__,
+            "scikit-image": skimage.__version__,
+            "pytorch_msssim": "1.0.0",
+            "torchmetrics": torchmetrics.__version__,
             "lpips": "0.1.4",
-        },  # fmt: skip
+        },
         "values": values,
     }
     if calibra:
@@ -196,7 +200,8 @@ def _calibration(orig, folder: str) -> dict:
     from skimage.io import imread
 
     folder = pathlib.Path(folder)
-    rows = {r[0]: r[1:] for r in csv.reader(open(folder / "results_official.csv"))}
+    with open(folder / "results_official.csv", newline="") as f:
+        rows = {r[0]: r[1:] for r in csv.reader(f)}
     names, official = rows["Method"], [float(x) for x in rows["lpips"]]
     got = []
     for n in names:
