@@ -67,7 +67,7 @@ class MapConfig:
 
     iterations: int = 100
     neighbours: int = 2
-    current_view_fraction: float = 0.4
+    current_view_fraction: float = 0.7  # paper: at least 0.4; see README (neighbour views pull the own view down)
     lr_rgb: float = 0.0025
     lr_radius: float = 0.005
     lr_opacity: float = 0.05
