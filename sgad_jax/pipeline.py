@@ -100,17 +100,13 @@ class _Mapper:
             print(f"warning: LPIPS not computed: {self.lpips_missing}", file=sys.stderr)
 
     def _neighbours(self, frame, pose):
+        """The last ``n`` frames, stacked; missing ones (at the start) padded and marked absent."""
         have = self.recent[: self.n]
-        pad = [(frame, pose, None)] * (self.n - len(have))
-        frames = [f for f, _, _ in have] + [f for f, _, _ in pad]
-        poses = [p for _, p, _ in have] + [p for _, p, _ in pad]
-        g_fill = self.recent[0][2] if have else None
-        gs = [g for _, _, g in have] + [g_fill] * len(pad)
+        filler = have[0] if have else (frame, pose, mapping.init_gaussians(frame, self.intr))
+        rows = have + [filler] * (self.n - len(have))
         stack = lambda *xs: jnp.stack(xs)  # noqa: E731
-        present = jnp.asarray([True] * len(have) + [False] * len(pad))
-        if g_fill is None:
-            gs = [mapping.init_gaussians(frame, self.intr)] * self.n
-        return jax.tree.map(stack, *frames), jax.tree.map(stack, *poses), jax.tree.map(stack, *gs), present
+        frames, poses, gs = (jax.tree.map(stack, *col) for col in zip(*rows))
+        return frames, poses, gs, jnp.asarray([True] * len(have) + [False] * (self.n - len(have)))
 
     def refine_guess(self, frame, guess):
         """Rendering-based initialisation of the pose guess from the previous frame's Gaussians."""
