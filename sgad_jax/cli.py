@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 
 from sgad_jax.config import ConfigError, apply_overrides, load_preset
@@ -28,6 +29,12 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--track-only", action="store_true", help="run the geometry branch (tracking) alone")
     r.add_argument("--save-renders", action="store_true", help="write every frame's rendered colour and depth to OUT/renders/")
     r.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a config field, e.g. --set track.stride=10 (repeatable)")
+    r.add_argument("--devices", type=int, default=None, help="map on N devices of this host (on CPU: N host devices); default: all (CPU: 1)")
+    r.add_argument("--checkpoint-every", type=int, default=25, metavar="N", help="checkpoint the run every N frames in OUT/checkpoints (0: never; default 25)")
+    r.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint (same config and data)")
+    r.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="multi-process run: the coordinator's address (or $JAX_COORDINATOR_ADDRESS)")
+    r.add_argument("--num-processes", type=int, default=None, help="multi-process run: number of processes (or $JAX_NUM_PROCESSES)")
+    r.add_argument("--process-id", type=int, default=None, help="multi-process run: this process's id (or $JAX_PROCESS_ID)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -51,20 +58,32 @@ def resolve_config(preset=None, data=None, *, start=None, stride=None, max_frame
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
+        from sgad_jax import distributed  # before anything starts JAX's backends
+
+        if args.devices is not None:
+            distributed.use_cpu_devices(args.devices)
+        if args.coordinator or args.num_processes or args.process_id is not None or "JAX_COORDINATOR_ADDRESS" in os.environ:
+            distributed.initialize(args.coordinator, args.num_processes, args.process_id)
         cfg = resolve_config(
             args.config, args.data, start=args.start, stride=args.stride, max_frames=args.max_frames, overrides=args.overrides
         )
         from sgad_jax import pipeline
 
-        result = pipeline.run(cfg, args.out, track_only=args.track_only, save_renders=args.save_renders, progress=not args.quiet)
+        result = pipeline.run(
+            cfg, args.out, track_only=args.track_only, save_renders=args.save_renders, progress=not args.quiet,
+            resume=args.resume, checkpoint_every=args.checkpoint_every, devices=args.devices,
+        )
     except (ConfigError, DatasetError) as err:
         print(f"sgad-jax: error: {err}", file=sys.stderr)
         return 2
     m = result.metrics
     keys = ("frames", "ate_rmse_cm", "ate_mean_cm", "track_ms_median", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "map_s_per_frame", "compile_s", "peak_rss_mb")
     summary = {k: m[k] for k in keys if k in m}
-    print(json.dumps(summary))
-    print(f"wrote {args.out}/trajectory.txt and {args.out}/metrics.json", file=sys.stderr)
+    import jax
+
+    if jax.process_index() == 0:
+        print(json.dumps(summary))
+        print(f"wrote {args.out}/trajectory.txt and {args.out}/metrics.json", file=sys.stderr)
     return 0
 
 

@@ -79,6 +79,7 @@ class MapConfig:
     render_init: bool = False  # refine the pose guess by rendering the previous frame's Gaussians
     render_init_iterations: int = 30
     psnr_protocol: str = "whole"  # whole | valid (valid-depth pixels) | zeroed (invalid pixels zeroed)
+    host_budget_mb: float = 64.0  # mapped frames' Gaussians kept in host memory; older ones live on disk only
 
 
 @dataclasses.dataclass(frozen=True)

@@ -21,6 +21,7 @@ import json
 import os
 import pathlib
 import resource
+import shutil
 import sys
 import time
 
@@ -30,15 +31,19 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from sgad_jax import lie, slam
+import jax.experimental.multihost_utils
+
+from sgad_jax import checkpoint, lie, slam
 from sgad_jax import map as mapping
+from sgad_jax.distributed import BatchMapper, frames_mesh
 from sgad_jax.eval import image
 from sgad_jax.config import ConfigError, SLAMConfig, to_dict
 from sgad_jax.eval.ate import ate
 from sgad_jax.io.base import Dataset, DatasetError
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import write_tum_trajectory
-from sgad_jax.types import make_frame
+from sgad_jax.io.store import GaussianStore
+from sgad_jax.types import Frame, make_frame
 
 
 @dataclasses.dataclass
@@ -50,6 +55,19 @@ class RunResult:
 
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+#: ``metrics.json`` records the resident memory every this many frames (``rss_mb_by_frame``).
+RSS_EVERY = 50
+
+
+def current_rss_mb() -> float:
+    """Resident memory now (Linux ``/proc``; the peak elsewhere)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except OSError:
+        return peak_rss_mb()
 
 
 def initial_pose(ds: Dataset) -> lie.SE3:
@@ -68,22 +86,31 @@ def compile_step(tcfg, state: slam.SLAMState, depth, intr, dt, guess=None):
     return step.lower(tcfg, state, depth, intr, dt, guess).compile()
 
 
-class _Mapper:
-    """The appearance branch of the host loop: maps each tracked frame against its ``n`` previous
-    frames, renders it, scores the render and keeps only what the next frames need."""
+def host_frame(sample) -> Frame:
+    """The frame of a sample as host (numpy) arrays."""
+    return jax.tree.map(np.asarray, make_frame(sample.rgb, sample.depth, sample.depth_filled))
 
-    def __init__(self, cfg: SLAMConfig, intr, out: pathlib.Path | None, save_renders: bool):
+
+class _Mapper:
+    """The appearance branch of the host loop: collects tracked frames (with their ``n`` previous
+    frames as neighbours) into batches of one frame per device, maps each batch at once, scores every
+    frame's render and moves its Gaussians off the devices into a :class:`GaussianStore`."""
+
+    def __init__(self, cfg: SLAMConfig, intr, out: pathlib.Path | None, save_renders: bool, mesh=None):
         self.cfg, self.intr = cfg, intr
         self.n = cfg.map.neighbours
-        self.renders = out / "renders" if (save_renders and out is not None) else None
+        self.main = jax.process_index() == 0
+        self.renders = out / "renders" if (save_renders and out is not None and self.main) else None
         if self.renders is not None:
             self.renders.mkdir(parents=True, exist_ok=True)
-        self.recent: list[tuple] = []  # (frame, pose, gaussians) of the last n frames, newest first
-        self.step = None
+        self.store = GaussianStore(None if out is None else out / "gaussians", cfg.map.host_budget_mb)
+        self.batch = BatchMapper(cfg.map, intr, mesh)
+        self.recent: list[tuple[Frame, np.ndarray]] = []  # (frame, pose 4x4) of the last n frames, newest first
+        self.pending: list[tuple] = []  # (index, frame, pose, neighbours) tracked, not yet mapped
         self.refine = None
         self.compile_s = 0.0
         self.scores: dict[str, list[float]] = {k: [] for k in ("psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm")}
-        self.seconds: list[float] = []
+        self.seconds: list[float] = []  # per mapped frame: its batch's time over its batch's frames
         if cfg.map.psnr_protocol not in image.PSNR_PROTOCOLS:
             raise ConfigError(f"map.psnr_protocol must be one of {', '.join(image.PSNR_PROTOCOLS)}, got {cfg.map.psnr_protocol!r}")
         self.lpips_missing: str | None = None
@@ -96,50 +123,72 @@ class _Mapper:
                 image.lpips(np.zeros((32, 32, 3)), np.zeros((32, 32, 3)))
             except image.LPIPSUnavailable as err:  # its message says where it looked and what to do
                 self.lpips_missing = str(err)
-        if self.lpips_missing:
+        if self.lpips_missing and self.main:
             print(f"warning: LPIPS not computed: {self.lpips_missing}", file=sys.stderr)
 
-    def _neighbours(self, frame, pose):
-        """The last ``n`` frames, stacked; missing ones (at the start) padded and marked absent."""
-        have = self.recent[: self.n]
-        filler = have[0] if have else (frame, pose, mapping.init_gaussians(frame, self.intr))
-        rows = have + [filler] * (self.n - len(have))
-        stack = lambda *xs: jnp.stack(xs)  # noqa: E731
-        frames, poses, gs = (jax.tree.map(stack, *col) for col in zip(*rows))
-        return frames, poses, gs, jnp.asarray([True] * len(have) + [False] * (self.n - len(have)))
-
-    def refine_guess(self, frame, guess):
-        """Rendering-based initialisation of the pose guess from the previous frame's Gaussians."""
+    def refine_guess(self, frame: Frame, guess):
+        """Rendering-based initialisation of the pose guess from the previous frame's Gaussians as
+        initialised from its RGB-D (so tracking never waits for mapping)."""
         if not self.recent:
             return guess
+        prev, pose_prev = self.recent[0]
+        args = (prev, lie.from_matrix(pose_prev), frame, guess)
         if self.refine is None:
             t0 = time.perf_counter()
-            fn = functools.partial(mapping.refine_pose, self.cfg.map, iterations=self.cfg.map.render_init_iterations)
-            _, pose_prev, g_prev = self.recent[0]
-            self.refine = jax.jit(fn).lower(g_prev, pose_prev, frame, guess, self.intr).compile()
-            self.compile_s += time.perf_counter() - t0
-        _, pose_prev, g_prev = self.recent[0]
-        return self.refine(g_prev, pose_prev, frame, guess, self.intr)
+            cfg, intr, its = self.cfg.map, self.intr, self.cfg.map.render_init_iterations
 
-    def __call__(self, index: int, sample, pose_matrix: np.ndarray) -> None:
-        frame = make_frame(sample.rgb, sample.depth, sample.depth_filled)
-        pose = lie.from_matrix(pose_matrix)
-        args = (frame, pose, *self._neighbours(frame, pose), self.intr)
-        if self.step is None:
+            def fn(prev, pose_prev, frame, guess):
+                g_prev = mapping.init_gaussians(prev, intr)
+                return mapping.refine_pose(cfg, g_prev, pose_prev, frame, guess, intr, iterations=its)
+
+            self.refine = jax.jit(fn).lower(*args).compile()
+            self.compile_s += time.perf_counter() - t0
+        return self.refine(*args)
+
+    def push(self, index: int, frame: Frame, pose: np.ndarray) -> None:
+        """Queue a tracked frame; map the queue when it fills a batch."""
+        self.pending.append((index, frame, pose, list(self.recent)))
+        self.recent = [(frame, pose)] + self.recent[: self.n - 1]
+        if len(self.pending) == self.batch.size:
+            self.flush()
+
+    def flush(self) -> None:
+        """Map every queued frame (the last batch padded by repeating its last frame)."""
+        if not self.pending:
+            return
+        items = self.pending + [self.pending[-1]] * (self.batch.size - len(self.pending))
+        stack = lambda *xs: np.stack(xs)  # noqa: E731
+        rows = []
+        for _, frame, pose, nbs in items:
+            have = [(f, p) for f, p in nbs]
+            filler = have[0] if have else (frame, pose)
+            nb = have + [filler] * (self.n - len(have))
+            rows.append((
+                frame,
+                _pose(pose),
+                jax.tree.map(stack, *[f for f, _ in nb]),
+                jax.tree.map(stack, *[_pose(p) for _, p in nb]),
+                np.asarray([True] * len(have) + [False] * (self.n - len(have))),
+            ))
+        batch = [jax.tree.map(stack, *col) for col in zip(*rows)]
+        if self.batch._compiled is None:
             t0 = time.perf_counter()
-            self.step = jax.jit(functools.partial(slam.map_step, self.cfg.map)).lower(*args).compile()
+            self.batch.compile(*batch)
             self.compile_s += time.perf_counter() - t0
         t0 = time.perf_counter()
-        g, out, _ = self.step(*args)
-        jax.block_until_ready(g)
-        self.seconds.append(time.perf_counter() - t0)
-        self.recent = [(frame, pose, g)] + self.recent[: self.n - 1]
-        self._score(index, frame, out)
+        local, rgb, depth = self.batch(*batch)
+        real = len(self.pending)
+        self.seconds += [(time.perf_counter() - t0) / real] * real
+        for j, g in local:
+            if j < real:
+                self.store.put(self.pending[j][0], g)
+        for j, (index, frame, _, _) in enumerate(self.pending):
+            self._score(index, frame, rgb[j], depth[j])
+        self.pending = []
 
-    def _score(self, index: int, frame, out) -> None:
-        rgb = np.clip(np.asarray(out.rgb), 0.0, 1.0)
-        depth = np.asarray(out.depth)
-        target, valid = np.asarray(frame.rgb), np.asarray(frame.valid)
+    def _score(self, index: int, frame: Frame, rgb: np.ndarray, depth: np.ndarray) -> None:
+        rgb = np.clip(rgb, 0.0, 1.0)
+        target, valid = frame.rgb, frame.valid
         self.scores["psnr"].append(float(image.psnr(rgb, target, valid, protocol=self.cfg.map.psnr_protocol)))
         self.scores["ssim"].append(float(image.ssim(rgb, target)))
         if min(rgb.shape[:2]) >= image.MS_SSIM_MIN_SIZE:
@@ -147,7 +196,7 @@ class _Mapper:
         if self.lpips_weights is not None:
             self.scores["lpips"].append(float(image.lpips(rgb, target, self.lpips_weights)))
         if valid.any():
-            self.scores["depth_l1_cm"].append(100.0 * float(np.abs(depth - np.asarray(frame.depth))[valid].mean()))
+            self.scores["depth_l1_cm"].append(100.0 * float(np.abs(depth - frame.depth)[valid].mean()))
         if self.renders is not None:
             cv2.imwrite(str(self.renders / f"rgb_{index:06d}.png"), cv2.cvtColor((rgb * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
             mm = np.clip(depth * 1000.0 + 0.5, 0, 65535).astype(np.uint16)
@@ -156,15 +205,163 @@ class _Mapper:
     def metrics(self) -> dict:
         mean = lambda xs: float(np.mean(xs)) if xs else None  # noqa: E731
         out = {k: mean(v) for k, v in self.scores.items()}
+        h, w = self.intr.height, self.intr.width
         out.update(
             psnr_protocol=self.cfg.map.psnr_protocol,
             mapped_frames=len(self.seconds),
-            map_s_per_frame=mean(self.seconds[1:] or self.seconds),
+            map_s_per_frame=mean(self.seconds[self.batch.size :] or self.seconds),
             map_compile_s=self.compile_s,
+            devices=self.batch.size,
+            gaussians_total=len(self.seconds) * h * w,  # the paper's NUM1
+            gaussians_on_devices=self.batch.size * (1 + self.n) * h * w,  # NUM2: each device's frame and its neighbours'
+            gaussians_host_mb=self.store.memory_mb,
         )
         if self.lpips_missing:
             out["lpips_missing"] = self.lpips_missing
         return out
+
+    # Checkpoints: the recent frames as fixed-shape arrays, the scores as JSON.
+    def state(self) -> tuple[dict, dict]:
+        self.flush()
+        self.store.flush()
+        h, w = self.intr.height, self.intr.width
+        recent = self.recent + [(_blank_frame(h, w), np.eye(4))] * (self.n - len(self.recent))
+        arrays = checkpoint.flatten("recent_frames", jax.tree.map(lambda *x: np.stack(x), *[f for f, _ in recent]))
+        arrays["recent_poses"] = np.stack([p for _, p in recent])
+        return arrays, {"recent": len(self.recent), "scores": self.scores, "seconds": self.seconds}
+
+    def restore(self, arrays: dict, meta: dict) -> None:
+        h, w = self.intr.height, self.intr.width
+        like = jax.tree.map(lambda *x: np.stack(x), *[_blank_frame(h, w)] * self.n)
+        frames = jax.tree.map(np.asarray, checkpoint.unflatten("recent_frames", arrays, like))
+        self.recent = [(jax.tree.map(lambda x: x[k], frames), arrays["recent_poses"][k]) for k in range(meta["recent"])]
+        self.scores = {k: list(v) for k, v in meta["scores"].items()}
+        self.seconds = list(meta["seconds"])
+
+
+def _pose(T: np.ndarray) -> lie.SE3:
+    return jax.tree.map(np.asarray, lie.from_matrix(T))
+
+
+def _blank_frame(h: int, w: int) -> Frame:
+    return Frame(rgb=np.zeros((h, w, 3), np.float32), depth=np.zeros((h, w), np.float32), depth_filled=np.zeros((h, w), np.float32), valid=np.zeros((h, w), bool))
+
+
+class TrackingDiverged(DatasetError):
+    """A frame's pose came out non-finite."""
+
+
+class SLAM:
+    """Streaming SGAD-SLAM: feed frames one at a time (a live camera, or :func:`run` over a dataset).
+
+    ``add(sample)`` tracks the frame (an :class:`~sgad_jax.io.base.RGBDSample`, or anything with
+    ``rgb`` uint8, ``depth`` metres, ``depth_filled``, ``depth_timestamp``) and returns its
+    camera-to-world pose at once; mapping follows in batches of one frame per device. ``finish()``
+    maps what is queued and returns the metrics (without ATE, which needs ground truth).
+    """
+
+    def __init__(
+        self,
+        cfg: SLAMConfig,
+        intr,
+        *,
+        initial_pose: lie.SE3 | None = None,
+        out_dir: str | os.PathLike | None = None,
+        track_only: bool = False,
+        save_renders: bool = False,
+        mesh=None,
+    ):
+        self.cfg, self.intr = cfg, intr
+        self.state = slam.init_state(cfg.track, initial_pose)
+        self.mapper = None if track_only else _Mapper(cfg, intr, None if out_dir is None else pathlib.Path(out_dir), save_renders, mesh)
+        render_init = self.mapper is not None and cfg.map.render_init
+        self._predict = jax.jit(slam.predict, static_argnums=0) if render_init else None
+        self._step = None
+        self.poses: list[np.ndarray] = []
+        self.stamps: list[float] = []
+        self.times: list[float] = []
+        self.iters: list[int] = []
+        self.last_depth_t: float | None = None
+        self.compile_s: float | None = None
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def add(self, sample) -> np.ndarray:
+        """Track one frame (and queue it for mapping); returns its 4x4 camera-to-world pose.
+
+        Raises:
+            TrackingDiverged: the pose came out non-finite; the system cannot continue.
+        """
+        depth = jnp.asarray(sample.depth)
+        dt = jnp.float32(0.0 if self.last_depth_t is None else sample.depth_timestamp - self.last_depth_t)
+        frame = None if self.mapper is None else host_frame(sample)
+        guess = None
+        if self._predict is not None:
+            guess = self.mapper.refine_guess(frame, self._predict(self.cfg.track, self.state, dt))
+        if self._step is None:
+            t0 = time.perf_counter()
+            self._step = compile_step(self.cfg.track, self.state, depth, self.intr, dt, guess)
+            self.compile_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        self.state, T, info, _ = self._step(self.state, depth, self.intr, dt, guess)
+        pose = np.asarray(T.as_matrix())
+        self.times.append(time.perf_counter() - t0)
+        if not np.isfinite(pose).all():
+            raise TrackingDiverged("tracking diverged (non-finite pose)")
+        self.last_depth_t = sample.depth_timestamp
+        self.poses.append(pose)
+        self.stamps.append(float(sample.timestamp))
+        self.iters.append(int(info.iterations))
+        if self.mapper is not None:
+            self.mapper.push(len(self.poses) - 1, frame, pose)
+        return pose
+
+    def finish(self) -> dict:
+        """Map the queued frames; the run's metrics so far."""
+        if self.mapper is not None:
+            self.mapper.flush()
+            if not self.mapper.store.temporary:
+                self.mapper.store.flush()
+        steady = self.times[1:] if len(self.times) > 1 else self.times
+        metrics = {
+            "track_ms_median": 1000 * float(np.median(steady)) if steady else None,
+            "track_iterations_mean": float(np.mean(self.iters)) if self.iters else None,
+            "geometry_gaussians": int(self.state.geom.count),
+            "compile_s": self.compile_s,
+        }
+        if self.mapper is None:
+            metrics["mapping"] = "not run (--track-only)"
+        else:
+            metrics.update(self.mapper.metrics())
+        return metrics
+
+    def checkpoint_state(self) -> tuple[dict, dict]:
+        """``(arrays, meta)``: everything needed to continue (queued frames are mapped first)."""
+        arrays = checkpoint.flatten("state", self.state)
+        arrays.update(poses=np.asarray(self.poses).reshape(-1, 4, 4), stamps=np.asarray(self.stamps, np.float64))
+        meta = {"frames": len(self.poses), "last_depth_t": self.last_depth_t, "times": self.times, "iters": self.iters}
+        if self.mapper is not None:
+            more, meta["mapper"] = self.mapper.state()
+            arrays.update(more)
+        return arrays, meta
+
+    def restore(self, arrays: dict, meta: dict) -> None:
+        self.state = checkpoint.unflatten("state", arrays, self.state)
+        self.poses = list(arrays["poses"])
+        self.stamps = [float(t) for t in arrays["stamps"]]
+        self.times, self.iters, self.last_depth_t = list(meta["times"]), list(meta["iters"]), meta["last_depth_t"]
+        if self.mapper is not None:
+            self.mapper.restore(arrays, meta["mapper"])
+
+
+def _identity(cfg: SLAMConfig, ds: Dataset, track_only: bool) -> dict:
+    """What a checkpoint must match to be resumed: the config, the mode and the dataset's frames."""
+    return {
+        "config": json.loads(json.dumps(to_dict(cfg))),
+        "track_only": track_only,
+        "dataset": {"name": ds.name, "layout": ds.layout, "frames": len(ds), "timestamps": [float(t) for t in ds.timestamps[:1]] + [float(t) for t in ds.timestamps[-1:]]},
+    }
 
 
 def run(
@@ -174,81 +371,86 @@ def run(
     track_only: bool = False,
     save_renders: bool = False,
     progress: bool = True,
+    resume: bool = False,
+    checkpoint_every: int = 0,
+    devices: int | None = None,
 ) -> RunResult:
     """Run SLAM over ``cfg.data`` and write the outputs to ``out_dir`` (if given).
 
+    With ``checkpoint_every`` N > 0 (and an ``out_dir``) the run is checkpointed every N frames in
+    ``out_dir/checkpoints``; ``resume`` continues from the newest checkpoint there (the config and
+    dataset must be the same) instead of starting over. Mapping uses ``devices`` devices of each
+    process (default: all; see :mod:`sgad_jax.distributed`).
+
     Raises:
         DatasetError: on bad input (after writing whatever was computed before it).
+        ConfigError: when resuming is impossible (no checkpoint, another config or dataset).
     """
     ds = open_dataset(cfg.data)
-    intr = ds.intrinsics
-    tcfg = cfg.track
-    state = slam.init_state(tcfg, initial_pose(ds))
     out = None if out_dir is None else pathlib.Path(out_dir)
-    mapper = None if track_only else _Mapper(cfg, intr, out, save_renders)
-    render_init = mapper is not None and cfg.map.render_init
-    predict = jax.jit(slam.predict, static_argnums=0) if render_init else None
+    main = jax.process_index() == 0
+    identity = _identity(cfg, ds, track_only)
+    ckpt_root = None if out is None or jax.process_count() > 1 else out / "checkpoints"
+    if resume and ckpt_root is None:
+        raise ConfigError("--resume needs --out (and a single-process run)")
+    restored = checkpoint.latest(ckpt_root) if resume else None
+    if resume and restored is None:
+        raise ConfigError(f"nothing to resume: no checkpoint in {ckpt_root}")
+    if restored is not None and restored[1]["identity"] != identity:
+        saved = restored[1]["identity"]
+        what = "dataset" if saved["dataset"] != identity["dataset"] else "mode (--track-only)" if saved["track_only"] != track_only else "config"
+        raise ConfigError(f"cannot resume {ckpt_root}: it was made with another {what}; rerun with the same settings or a new --out")
+    if out is not None and restored is None and main:
+        for stale in (out / "gaussians", out / "renders", out / "checkpoints"):
+            shutil.rmtree(stale, ignore_errors=True)
+    if out is not None and jax.process_count() > 1:
+        jax.experimental.multihost_utils.sync_global_devices("sgad_jax: outputs cleared")
+    mesh = None if track_only else frames_mesh(devices)
+    system = SLAM(cfg, ds.intrinsics, initial_pose=initial_pose(ds), out_dir=out, track_only=track_only, save_renders=save_renders, mesh=mesh)
+    start = 0
+    if restored is not None:
+        system.restore(restored[0], restored[1]["run"])
+        start = len(system)
 
-    poses, stamps, times, iters = [], [], [], []
-    last_depth_t = None
-    compile_s = None
     stopped = None
+    rss_trace = []
     what = "tracking" if track_only else "tracking + mapping"
-    bar = tqdm(total=len(ds), desc=f"{what} {ds.name}", unit="frame", disable=not progress, file=sys.stderr)
+    bar = tqdm(total=len(ds), initial=start, desc=f"{what} {ds.name}", unit="frame", disable=not (progress and main), file=sys.stderr)
     try:
-        for i in range(len(ds)):
+        for i in range(start, len(ds)):
             sample = ds[i]
-            depth = jnp.asarray(sample.depth)
-            dt = jnp.float32(0.0 if last_depth_t is None else sample.depth_timestamp - last_depth_t)
-            last_depth_t = sample.depth_timestamp
-            guess = None
-            if render_init:
-                guess = mapper.refine_guess(make_frame(sample.rgb, sample.depth, sample.depth_filled), predict(tcfg, state, dt))
-            if compile_s is None:
-                t0 = time.perf_counter()
-                compiled = compile_step(tcfg, state, depth, intr, dt, guess)
-                compile_s = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            state, T, info, _ = compiled(state, depth, intr, dt, guess)
-            pose = np.asarray(T.as_matrix())
-            times.append(time.perf_counter() - t0)
-            if not np.isfinite(pose).all():
-                raise DatasetError(f"{ds.name} frame {sample.source_index}: tracking diverged (non-finite pose)")
-            poses.append(pose)
-            stamps.append(sample.timestamp)
-            iters.append(int(info.iterations))
-            if mapper is not None:
-                mapper(i, sample, pose)
+            try:
+                system.add(sample)
+            except TrackingDiverged as err:
+                raise DatasetError(f"{ds.name} frame {sample.source_index}: {err}") from None
             bar.update(1)
+            if (i + 1) % RSS_EVERY == 0:
+                rss_trace.append([i + 1, current_rss_mb()])
+            if ckpt_root is not None and checkpoint_every > 0 and (i + 1) % checkpoint_every == 0 and i + 1 < len(ds):
+                arrays, meta = system.checkpoint_state()
+                checkpoint.save(ckpt_root, i + 1, arrays, {"identity": identity, "run": meta})
     except DatasetError as err:
         stopped = str(err)
     finally:
         bar.close()
 
-    poses_np = np.stack(poses) if poses else np.zeros((0, 4, 4))
-    stamps_np = np.asarray(stamps, np.float64)
-    metrics = {"frames": len(poses), "dataset": ds.name, "layout": ds.layout}
-    gt = ds.gt_poses[: len(poses)]
-    if len(poses) >= 3 and np.isfinite(gt).all(axis=(1, 2)).sum() >= 3:
+    metrics = {"frames": len(system), "dataset": ds.name, "layout": ds.layout}
+    run_metrics = system.finish()
+    poses_np = np.stack(system.poses) if system.poses else np.zeros((0, 4, 4))
+    stamps_np = np.asarray(system.stamps, np.float64)
+    gt = ds.gt_poses[: len(poses_np)]
+    if len(poses_np) >= 3 and np.isfinite(gt).all(axis=(1, 2)).sum() >= 3:
         err = ate(poses_np, gt)
         metrics.update(ate_rmse_cm=100 * err["rmse_m"], ate_mean_cm=100 * err["mean_m"], ate_pairs=err["pairs"])
     else:
         metrics.update(ate_rmse_cm=None, ate_mean_cm=None)
-    steady = times[1:] if len(times) > 1 else times
-    metrics.update(
-        track_ms_median=1000 * float(np.median(steady)) if steady else None,
-        track_iterations_mean=float(np.mean(iters)) if iters else None,
-        geometry_gaussians=int(state.geom.count),
-        compile_s=compile_s,
-    )
-    if mapper is None:
-        metrics["mapping"] = "not run (--track-only)"
-    else:
-        metrics.update(mapper.metrics())
-    metrics.update(peak_rss_mb=peak_rss_mb(), config=to_dict(cfg))
+    metrics.update(run_metrics)
+    if restored is not None:
+        metrics["resumed_from_frame"] = start
+    metrics.update(processes=jax.process_count(), peak_rss_mb=peak_rss_mb(), rss_mb_by_frame=rss_trace, config=to_dict(cfg))
     if stopped:
         metrics["stopped"] = stopped
-    if out is not None:
+    if out is not None and main:
         out.mkdir(parents=True, exist_ok=True)
         write_tum_trajectory(out / "trajectory.txt", stamps_np, poses_np)
         tmp = out / "metrics.json.tmp"

@@ -81,16 +81,20 @@ def map_step(
     pose: lie.SE3,
     neighbours: Frame,
     neighbour_poses: lie.SE3,
-    neighbour_gaussians: PixelGaussians,
     present: Bool[Array, " n"],
     intr: Intrinsics,
 ) -> tuple[PixelGaussians, splat.Render, mapping.MapInfo]:
     """Map one tracked frame and render its view.
 
-    ``neighbours`` (frames, poses and their mapped Gaussians) are stacked with a fixed count ``n``;
-    ``present`` marks the real ones (the first frames of a run have fewer). Returns the frame's
-    Gaussians, its rendered view (own Gaussians over the neighbours') and the mapping record.
+    ``neighbours`` (frames and poses) are stacked with a fixed count ``n``; ``present`` marks the
+    real ones (the first frames of a run have fewer). The neighbours' Gaussians, fixed during the
+    frame's mapping, are their initial ones (:func:`sgad_jax.map.init_gaussians`): so a frame's
+    mapping depends on tracked frames and poses only, never on another frame's mapping, and any set
+    of tracked frames can be mapped at once (``vmap``, devices, hosts) with the same result.
+    Returns the frame's Gaussians, its rendered view (own Gaussians over the neighbours') and the
+    mapping record.
     """
+    neighbour_gaussians = jax.vmap(mapping.init_gaussians, in_axes=(0, None))(neighbours, intr)
     hide = jnp.where(present, 0.0, -1e4)[:, None, None]
     neighbour_gaussians = dataclasses.replace(neighbour_gaussians, opacity_logit=neighbour_gaussians.opacity_logit + hide)
     background = mapping.render_neighbours(neighbour_gaussians, neighbour_poses, pose, intr)

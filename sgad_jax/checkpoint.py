@@ -1,0 +1,56 @@
+"""Checkpoints of a run with orbax: everything needed to continue it.
+
+A checkpoint is an orbax step folder under ``OUT/checkpoints/`` holding ``arrays`` (a flat dict of
+arrays: the tracking state, the trajectory so far, the mapper's recent frames) and ``meta`` (JSON:
+the config, the dataset's identity, the position, per-frame scores). Orbax writes a step to a
+temporary folder and renames it when complete, so a run killed at any moment (SIGKILL included)
+leaves the previous complete checkpoint to resume from.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+
+from sgad_jax.config import ConfigError
+
+
+def _manager(root: pathlib.Path) -> ocp.CheckpointManager:
+    options = ocp.CheckpointManagerOptions(max_to_keep=2, enable_async_checkpointing=False)
+    return ocp.CheckpointManager(root.absolute(), options=options)
+
+
+def save(root: pathlib.Path, step: int, arrays: dict[str, np.ndarray], meta: dict) -> None:
+    """Write checkpoint ``step`` (the number of frames done) under ``root``."""
+    with _manager(root) as mngr:
+        mngr.save(step, args=ocp.args.Composite(arrays=ocp.args.StandardSave(arrays), meta=ocp.args.JsonSave(meta)), force=True)
+
+
+def latest(root: pathlib.Path) -> tuple[dict[str, np.ndarray], dict] | None:
+    """The newest complete checkpoint under ``root`` as ``(arrays, meta)``, or None."""
+    if not root.is_dir():
+        return None
+    with _manager(root) as mngr:
+        step = mngr.latest_step()
+        if step is None:
+            return None
+        got = mngr.restore(step, args=ocp.args.Composite(arrays=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore()))
+    return {k: np.asarray(v) for k, v in got["arrays"].items()}, dict(got["meta"])
+
+
+def flatten(prefix: str, tree) -> dict[str, np.ndarray]:
+    """``{prefix/i: leaf}`` for the leaves of ``tree`` (restored by :func:`unflatten`)."""
+    return {f"{prefix}/{i:03d}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(tree))}
+
+
+def unflatten(prefix: str, arrays: dict[str, np.ndarray], like):
+    """The tree with the structure of ``like`` from the leaves :func:`flatten` wrote."""
+    leaves, treedef = jax.tree.flatten(like)
+    got = [arrays[f"{prefix}/{i:03d}"] for i in range(len(leaves))]
+    for g, ref in zip(got, leaves):
+        if np.shape(g) != np.shape(ref):
+            raise ConfigError(f"checkpoint {prefix} does not fit this run (shape {np.shape(g)} vs {np.shape(ref)})")
+    return jax.tree.unflatten(treedef, [jax.numpy.asarray(g, dtype=np.asarray(r).dtype) for g, r in zip(got, leaves)])

@@ -1,0 +1,121 @@
+"""Mapping across devices and hosts with JAX's own runtime.
+
+Once frames are tracked their mapping is independent (:func:`sgad_jax.slam.map_step` reads only
+tracked frames and poses), so a batch of frames is mapped by ``vmap`` on each device and
+``shard_map`` over a one-axis mesh of all devices of all processes. Each device maps the same
+one-frame-per-device program whatever the device count, so results do not depend on it.
+
+* One host, N devices: on CPU call :func:`use_cpu_devices` before anything touches JAX (the CLI's
+  ``--devices N`` does); on GPU/TPU the host's devices are used as they are.
+* Several hosts: :func:`initialize` (``jax.distributed.initialize``; CPU collectives over gloo),
+  then every process runs the same host loop; each maps the frames on its devices and the renders
+  are gathered so that every process scores every frame.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import jax
+import numpy as np
+from jax.experimental import multihost_utils
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+from sgad_jax import slam
+from sgad_jax.config import ConfigError, MapConfig
+from sgad_jax.types import Intrinsics
+
+#: The mesh axis frames are spread over.
+AXIS = "frames"
+
+
+def use_cpu_devices(n: int) -> None:
+    """Expose ``n`` XLA:CPU devices (one host). Must run before JAX initialises its backends."""
+    if n < 1:
+        raise ConfigError(f"--devices must be >= 1, got {n}")
+    if n > 1:
+        jax.config.update("jax_num_cpu_devices", n)
+
+
+def initialize(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None) -> None:
+    """Join a multi-process run (``jax.distributed.initialize``); arguments left ``None`` come from
+    the environment as JAX reads it (``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``,
+    ``JAX_PROCESS_ID``, or a cluster such as SLURM). CPU devices talk over gloo."""
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    coordinator = coordinator or os.environ.get("JAX_COORDINATOR_ADDRESS")
+    if num_processes is None and "JAX_NUM_PROCESSES" in os.environ:
+        num_processes = int(os.environ["JAX_NUM_PROCESSES"])
+    if process_id is None and "JAX_PROCESS_ID" in os.environ:
+        process_id = int(os.environ["JAX_PROCESS_ID"])
+    jax.distributed.initialize(coordinator, num_processes=num_processes, process_id=process_id)
+
+
+def frames_mesh(per_process: int | None = None) -> Mesh:
+    """A one-axis mesh over the first ``per_process`` devices of every process (default: all)."""
+    chosen = []
+    for p in range(jax.process_count()):
+        local = [d for d in jax.devices() if d.process_index == p]
+        if per_process is not None and per_process > len(local):
+            raise ConfigError(
+                f"{per_process} devices asked for, but process {p} has {len(local)} ({local[0].platform}); "
+                "on CPU pass --devices before anything else starts JAX"
+            )
+        chosen += local[:per_process]
+    return Mesh(np.asarray(chosen), (AXIS,))
+
+
+class BatchMapper:
+    """Maps ``mesh.size`` tracked frames at once, one per device.
+
+    Call it with host (numpy) pytrees stacked along a leading batch axis of length ``size``:
+    ``frames, poses, neighbours, neighbour_poses, present`` as for :func:`sgad_jax.slam.map_step`.
+    It returns this process's part of the result as ``[(batch_index, gaussians)]`` (numpy) and the
+    renders of the whole batch (``rgb``, ``depth``; numpy, gathered from every process).
+    """
+
+    def __init__(self, cfg: MapConfig, intr: Intrinsics, mesh: Mesh | None = None):
+        self.mesh = frames_mesh() if mesh is None else mesh
+        self.size = self.mesh.size
+        self.sharding = NamedSharding(self.mesh, P(AXIS))
+        step = functools.partial(slam.map_step, cfg, intr=intr)
+
+        def local(frame, pose, neighbours, neighbour_poses, present):
+            g, out, _ = jax.vmap(step)(frame, pose, neighbours, neighbour_poses, present)
+            return g, out.rgb, out.depth
+
+        self._fn = jax.jit(jax.shard_map(local, mesh=self.mesh, in_specs=P(AXIS), out_specs=P(AXIS)))
+        self._compiled = None
+
+    def _global(self, host):
+        return jax.tree.map(lambda x: jax.make_array_from_callback(x.shape, self.sharding, lambda idx: x[idx]), host)
+
+    def compile(self, *batch):
+        """Compile for the batch's shapes (done by the first call; the cost is reported apart)."""
+        if self._compiled is None:
+            self._compiled = self._fn.lower(*self._global(batch)).compile()
+        return self._compiled
+
+    def __call__(self, *batch):
+        g, rgb, depth = self.compile(*batch)(*self._global(batch))
+        return _split_local(g), _gather(rgb), _gather(depth)
+
+
+def _gather(x: jax.Array) -> np.ndarray:
+    """The whole of a frames-sharded array on every process."""
+    if x.is_fully_addressable:
+        return np.asarray(x)
+    return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+
+
+def _split_local(tree) -> list[tuple[int, object]]:
+    """``[(batch_index, item)]`` for the batch items this process holds."""
+    leaves, treedef = jax.tree.flatten(tree)
+    out = {}
+    for k, leaf in enumerate(leaves):
+        for shard in leaf.addressable_shards:
+            start = shard.index[0].start or 0
+            data = np.asarray(shard.data)
+            for j in range(data.shape[0]):
+                out.setdefault(start + j, [None] * len(leaves))[k] = data[j]
+    return [(i, jax.tree.unflatten(treedef, items)) for i, items in sorted(out.items())]
