@@ -384,7 +384,7 @@ def run(
 
     Raises:
         DatasetError: on bad input (after writing whatever was computed before it).
-        ConfigError: when resuming is impossible (no checkpoint, another config or dataset).
+        ConfigError: when the checkpoint to resume was made with another config or dataset.
     """
     ds = open_dataset(cfg.data)
     out = None if out_dir is None else pathlib.Path(out_dir)
@@ -394,8 +394,8 @@ def run(
     if resume and ckpt_root is None:
         raise ConfigError("--resume needs --out (and a single-process run)")
     restored = checkpoint.latest(ckpt_root) if resume else None
-    if resume and restored is None:
-        raise ConfigError(f"nothing to resume: no checkpoint in {ckpt_root}")
+    if resume and restored is None and main:
+        print(f"sgad-jax: no checkpoint in {ckpt_root} yet: starting from the first frame", file=sys.stderr)
     if restored is not None and restored[1]["identity"] != identity:
         saved = restored[1]["identity"]
         what = "dataset" if saved["dataset"] != identity["dataset"] else "mode (--track-only)" if saved["track_only"] != track_only else "config"

@@ -1,0 +1,212 @@
+"""Mapping across devices and processes, the Gaussian store, checkpoints and resume, streaming."""
+
+import json
+import os
+import pathlib
+import random
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sgad_jax import lie, slam
+from sgad_jax.cli import resolve_config
+from sgad_jax.config import MapConfig
+from sgad_jax.distributed import BatchMapper
+from sgad_jax.io.datasets import open_dataset
+from sgad_jax.io.export import read_tum_trajectory
+from sgad_jax.io.store import GaussianStore
+from sgad_jax.pipeline import SLAM, host_frame, initial_pose, run
+from sgad_jax.types import PixelGaussians
+
+TINY = ["data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=8", "map.iterations=3"]
+TINY_ARGS = [a for kv in TINY for a in ("--set", kv)]
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _cli(*args, env=None, **kw):
+    return subprocess.Popen(
+        [sys.executable, "-m", "sgad_jax", "run", "--quiet", *TINY_ARGS, *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env, **kw,
+    )
+
+
+def _finish(proc, timeout=600):
+    out, err = proc.communicate(timeout=timeout)
+    assert proc.returncode == 0, err[-3000:]
+    return out
+
+
+def _results(out: pathlib.Path):
+    _, poses = read_tum_trajectory(out / "trajectory.txt")
+    return poses, json.loads((out / "metrics.json").read_text())
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def test_batch_mapper_matches_map_step():
+    """One batch through shard_map + vmap equals the plain jitted map_step frame by frame."""
+    cfg = resolve_config(None, None, overrides=TINY)
+    ds = open_dataset(cfg.data)
+    intr = ds.intrinsics
+    frames = [host_frame(ds[i]) for i in range(3)]
+    poses = [jax.tree.map(np.asarray, lie.from_matrix(ds.gt_poses[i])) for i in range(3)]
+    stack = lambda *xs: np.stack(xs)  # noqa: E731
+    nb = jax.tree.map(stack, frames[1], frames[0])
+    nb_poses = jax.tree.map(stack, poses[1], poses[0])
+    present = np.array([True, False])
+    batch = [jax.tree.map(lambda x: x[None], t) for t in (frames[2], poses[2], nb, nb_poses, present)]
+    mapper = BatchMapper(cfg.map, intr)
+    local, rgb, depth = mapper(*batch)
+    g_ref, out_ref, _ = jax.jit(lambda *a: slam.map_step(cfg.map, *a, intr))(frames[2], poses[2], nb, nb_poses, present)
+    assert [j for j, _ in local] == [0]
+    for a, b in zip(jax.tree.leaves(local[0][1]), jax.tree.leaves(g_ref)):
+        np.testing.assert_allclose(a, np.asarray(b), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(rgb[0], np.asarray(out_ref.rgb), atol=1e-5)
+    np.testing.assert_allclose(depth[0], np.asarray(out_ref.depth), atol=1e-5)
+
+
+def test_two_devices_and_two_processes_match_one(tmp_path):
+    """`--devices 2` and a 2-process localhost run give the 1-device trajectory and metrics."""
+    one = _cli("--out", str(tmp_path / "one"), "--devices", "1")
+    two = _cli("--out", str(tmp_path / "two"), "--devices", "2")
+    _finish(one), _finish(two)
+    port = _free_port()
+    procs = [_cli("--out", str(tmp_path / "mp"), "--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(k)) for k in (1, 0)]
+    for p in procs:
+        _finish(p)
+    ref_poses, ref = _results(tmp_path / "one")
+    assert ref["devices"] == 1 and ref["mapped_frames"] == 8
+    for name, devices, processes in (("two", 2, 1), ("mp", 2, 2)):
+        poses, m = _results(tmp_path / name)
+        assert m["devices"] == devices and m["processes"] == processes
+        np.testing.assert_allclose(poses, ref_poses, atol=1e-5)
+        assert abs(m["psnr"] - ref["psnr"]) < 0.01
+        for key in ("ssim", "lpips", "depth_l1_cm"):
+            assert abs(m[key] - ref[key]) < 1e-4, key
+        # every frame's Gaussians were written once, whichever process mapped it
+        assert sorted(p.name for p in (tmp_path / name / "gaussians").glob("*.npz")) == [f"frame_{i:06d}.npz" for i in range(8)]
+
+
+def _kill_during_checkpoint_write(out: pathlib.Path, nth: int):
+    """A run that SIGKILLs itself inside its ``nth`` checkpoint write, after orbax wrote the data
+    and before it committed the step (its rename of the temporary folder)."""
+    code = f"""
+import os, signal, sys
+calls = []
+real = os.rename
+def rename(src, dst, *a, **k):
+    if "checkpoints" in str(dst) and os.path.basename(dst).isdigit():  # orbax commits step dst
+        calls.append(dst)
+        if len(calls) == {nth}:
+            os.kill(os.getpid(), signal.SIGKILL)
+    return real(src, dst, *a, **k)
+os.rename = rename
+from sgad_jax.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+    args = ["run", "--quiet", *TINY_ARGS, "--out", str(out), "--checkpoint-every", "2"]
+    proc = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    return proc
+
+
+def test_resume_after_sigkill_matches_uninterrupted_run(tmp_path):
+    ref = _cli("--out", str(tmp_path / "ref"), "--checkpoint-every", "2")
+    _finish(ref)
+    ref_poses, ref_m = _results(tmp_path / "ref")
+
+    out = tmp_path / "killed"
+    proc = _kill_during_checkpoint_write(out, nth=2)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+    assert not (out / "metrics.json").exists()
+    assert (out / "checkpoints" / "2").is_dir() and not (out / "checkpoints" / "4").exists()  # step 4 was being committed
+    rng = random.Random(0)
+    kills = 0
+    for _ in range(3):  # resume, and kill the resumed run again at a random moment
+        p = _cli("--out", str(out), "--checkpoint-every", "2", "--resume")
+        time.sleep(rng.uniform(4.0, 12.0))
+        if p.poll() is None:
+            p.send_signal(signal.SIGKILL)
+            kills += 1
+        p.communicate()
+        if (out / "metrics.json").exists():
+            break
+    if not (out / "metrics.json").exists():
+        _finish(_cli("--out", str(out), "--checkpoint-every", "2", "--resume"))
+    poses, m = _results(out)
+    np.testing.assert_allclose(poses, ref_poses, atol=1e-6)
+    for key in ("ate_rmse_cm", "psnr", "ssim", "lpips", "depth_l1_cm", "mapped_frames", "frames", "gaussians_total"):
+        assert abs(m[key] - ref_m[key]) <= 1e-4, (key, m[key], ref_m[key])
+    assert m["resumed_from_frame"] > 0
+
+
+def test_resume_refuses_another_config_and_starts_over_without_checkpoint(tmp_path):
+    out = tmp_path / "run"
+    _finish(_cli("--out", str(out), "--checkpoint-every", "2", "--max-frames", "3"))
+    other = _cli("--out", str(out), "--resume", "--max-frames", "3", "--set", "map.lr_rgb=0.01")
+    _, err = other.communicate(timeout=600)
+    assert other.returncode == 2 and "cannot resume" in err and "config" in err
+    # killed before its first checkpoint: --resume starts over
+    fresh = _cli("--out", str(tmp_path / "fresh"), "--resume", "--max-frames", "3")
+    _, err = fresh.communicate(timeout=600)
+    assert fresh.returncode == 0 and "no checkpoint" in err
+    assert _results(tmp_path / "fresh")[1]["frames"] == 3
+
+
+def _gaussians(seed, h=30, w=40):
+    r = np.random.default_rng(seed)
+    return PixelGaussians(
+        rgb=r.random((h, w, 3), np.float32), log_radius=r.random((h, w), np.float32), opacity_logit=r.random((h, w), np.float32),
+        offset=r.random((h, w), np.float32), depth=r.random((h, w), np.float32),
+    )
+
+
+def test_gaussian_store_spills_beyond_budget(tmp_path):
+    one_mb = 1 / 2**20 * 30 * 40 * 7 * 4  # one frame, in MB
+    store = GaussianStore(tmp_path / "g", budget_mb=2.5 * one_mb)
+    for i in range(10):
+        store.put(i, _gaussians(i))
+        assert store.memory_mb <= 2.5 * one_mb
+    assert store.count == 10 * 30 * 40
+    for i in range(10):
+        assert i in store
+        for a, b in zip(jax.tree.leaves(store.get(i)), jax.tree.leaves(_gaussians(i))):
+            np.testing.assert_array_equal(a, b)
+    # the oldest frames are on disk only; flush writes the rest
+    assert len(list((tmp_path / "g").glob("*.npz"))) == 8
+    store.flush()
+    assert len(list((tmp_path / "g").glob("*.npz"))) == 10
+    with pytest.raises(KeyError, match="frame 11"):
+        store.get(11)
+    temp = GaussianStore(None, budget_mb=0)
+    temp.put(0, _gaussians(0))
+    root = temp.root
+    assert (root / "frame_000000.npz").exists()
+    temp.close()
+    assert not root.exists()
+
+
+def test_streaming_api_matches_run(tmp_path):
+    """Feeding frames one at a time to `SLAM` gives `run`'s trajectory and scores."""
+    cfg = resolve_config(None, None, overrides=TINY)
+    ref = run(cfg, tmp_path / "run", progress=False)
+    ds = open_dataset(cfg.data)
+    system = SLAM(cfg, ds.intrinsics, initial_pose=initial_pose(ds))
+    poses = np.stack([system.add(ds[i]) for i in range(len(ds))])
+    m = system.finish()
+    np.testing.assert_allclose(poses, ref.poses, atol=1e-6)
+    for key in ("psnr", "ssim", "depth_l1_cm", "mapped_frames"):
+        assert m[key] == pytest.approx(ref.metrics[key], abs=1e-6)
+    # the stored Gaussians of a frame render its view as scored
+    g = system.mapper.store.get(3)
+    assert g.rgb.shape == (60, 80, 3) and np.isfinite(g.offset).all()
