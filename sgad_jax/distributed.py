@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import os
+import time
 
 import jax
 import numpy as np
@@ -90,14 +91,18 @@ class BatchMapper:
     def _global(self, host):
         return jax.tree.map(lambda x: jax.make_array_from_callback(x.shape, self.sharding, lambda idx: x[idx]), host)
 
-    def compile(self, *batch):
-        """Compile for the batch's shapes (done by the first call; the cost is reported apart)."""
-        if self._compiled is None:
-            self._compiled = self._fn.lower(*self._global(batch)).compile()
-        return self._compiled
+    def compile(self, *batch) -> float:
+        """Compile for the batch's shapes once (the first call does it otherwise); returns the
+        seconds it took (0 when already compiled)."""
+        if self._compiled is not None:
+            return 0.0
+        t0 = time.perf_counter()
+        self._compiled = self._fn.lower(*self._global(batch)).compile()
+        return time.perf_counter() - t0
 
     def __call__(self, *batch):
-        g, rgb, depth = self.compile(*batch)(*self._global(batch))
+        self.compile(*batch)
+        g, rgb, depth = self._compiled(*self._global(batch))
         return _split_local(g), _gather(rgb), _gather(depth)
 
 

@@ -159,10 +159,8 @@ class _Mapper:
         items = self.pending + [self.pending[-1]] * (self.batch.size - len(self.pending))
         stack = lambda *xs: np.stack(xs)  # noqa: E731
         rows = []
-        for _, frame, pose, nbs in items:
-            have = [(f, p) for f, p in nbs]
-            filler = have[0] if have else (frame, pose)
-            nb = have + [filler] * (self.n - len(have))
+        for _, frame, pose, have in items:
+            nb = have + [have[0] if have else (frame, pose)] * (self.n - len(have))
             rows.append((
                 frame,
                 _pose(pose),
@@ -171,10 +169,7 @@ class _Mapper:
                 np.asarray([True] * len(have) + [False] * (self.n - len(have))),
             ))
         batch = [jax.tree.map(stack, *col) for col in zip(*rows)]
-        if self.batch._compiled is None:
-            t0 = time.perf_counter()
-            self.batch.compile(*batch)
-            self.compile_s += time.perf_counter() - t0
+        self.compile_s += self.batch.compile(*batch)
         t0 = time.perf_counter()
         local, rgb, depth = self.batch(*batch)
         real = len(self.pending)
