@@ -210,3 +210,12 @@ def test_streaming_api_matches_run(tmp_path):
     # the stored Gaussians of a frame render its view as scored
     g = system.mapper.store.get(3)
     assert g.rgb.shape == (60, 80, 3) and np.isfinite(g.offset).all()
+
+
+def test_run_with_rendering_init(tmp_path):
+    """`map.render_init` in the host loop: the guess refined from the previous frame's Gaussians,
+    then GICP; the synthetic trajectory stays accurate."""
+    cfg = resolve_config(None, None, max_frames=6, overrides=["map.iterations=3", "map.render_init=true"])
+    result = run(cfg, tmp_path / "ri", progress=False)
+    assert result.metrics["frames"] == 6 and result.metrics["ate_rmse_cm"] < 0.05
+    assert result.metrics["mapped_frames"] == 6

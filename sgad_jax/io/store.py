@@ -15,6 +15,7 @@ import os
 import pathlib
 import shutil
 import tempfile
+import weakref
 
 import numpy as np
 
@@ -25,12 +26,14 @@ FIELDS = tuple(f.name for f in dataclasses.fields(PixelGaussians))
 
 class GaussianStore:
     """``put(index, gaussians)`` / ``get(index)``; ``root=None`` spills to a temporary folder that
-    is removed by :meth:`close`."""
+    is removed by :meth:`close` or when the store is garbage-collected."""
 
     def __init__(self, root: str | os.PathLike | None, budget_mb: float):
         self.temporary = root is None
         self.root = pathlib.Path(tempfile.mkdtemp(prefix="sgad_gaussians_") if root is None else root)
         self.root.mkdir(parents=True, exist_ok=True)
+        # a temporary folder goes when the store does (or at exit)
+        self._remove = weakref.finalize(self, shutil.rmtree, self.root, True) if self.temporary else None
         self.budget = int(budget_mb * 2**20)
         self._memory: collections.OrderedDict[int, PixelGaussians] = collections.OrderedDict()
         self._bytes = 0
@@ -70,8 +73,9 @@ class GaussianStore:
             self._write(index, g)
 
     def close(self) -> None:
-        if self.temporary:
-            shutil.rmtree(self.root, ignore_errors=True)
+        """Remove a temporary store's folder now (a store with a root keeps its files)."""
+        if self._remove is not None:
+            self._remove()
 
     def _write(self, index: int, g: PixelGaussians) -> None:
         if index in self._on_disk:
