@@ -98,16 +98,16 @@ def optimizer(cfg: MapConfig) -> optax.GradientTransformation:
 
 
 def render_into(g: PixelGaussians, pose: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, own, window: int) -> splat.Render:
-    """The frame's Gaussians in a view: the exact own-view layer, or one binned layer elsewhere."""
+    """The frame's Gaussians in a view: the exact own-view path, or one binned layer elsewhere."""
 
     def own_view(_):
-        return splat.own_layer(g, pose, intr, view_pose, window=window)
+        return splat.render_own(g, pose, intr, window=window, view_pose=view_pose)
 
     def other_view(_):
         attrs = splat.project(g, pose, view_pose, intr).reshape(splat.NUM_ATTRS, -1)
-        return splat.gather_layers(attrs, splat.bin_layers(attrs, intr, 1, window=window))
+        return splat.composite(splat.gather_layers(attrs, splat.bin_layers(attrs, intr, 1, window=window)), window)
 
-    return splat.composite(jax.lax.cond(own, own_view, other_view, None), window)
+    return jax.lax.cond(own, own_view, other_view, None)
 
 
 def over(front: splat.Render, back: splat.Render) -> splat.Render:

@@ -37,6 +37,7 @@ Poses are camera-to-world :class:`jaxlie.SE3`.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from typing import NamedTuple
@@ -70,24 +71,29 @@ class Render(NamedTuple):
     alpha: Float[Array, "h w"]
 
 
-def source_points(g: PixelGaussians, intr: Intrinsics) -> Float[Array, "3 h w"]:
-    """Gaussian centres in their own camera: pixel rays scaled to z-depth ``|depth + offset|``."""
+def source_points(g: PixelGaussians, intr: Intrinsics, v0=0, u0=0) -> Float[Array, "3 h w"]:
+    """Gaussian centres in their own camera: pixel rays scaled to z-depth ``|depth + offset|``.
+
+    ``g`` may be a crop of a frame's Gaussians whose first pixel is (``v0``, ``u0``).
+    """
     h, w = g.depth.shape[-2:]
-    v, u = jnp.meshgrid(jnp.arange(h, dtype=g.depth.dtype), jnp.arange(w, dtype=g.depth.dtype), indexing="ij")
+    dtype = g.depth.dtype
+    v, u = jnp.meshgrid(jnp.arange(h, dtype=dtype) + v0, jnp.arange(w, dtype=dtype) + u0, indexing="ij")
     z = g.z
     return jnp.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z])
 
 
 def project(
-    g: PixelGaussians, src_pose: lie.SE3, dst_pose: lie.SE3, intr: Intrinsics
+    g: PixelGaussians, src_pose: lie.SE3, dst_pose: lie.SE3, intr: Intrinsics, v0=0, u0=0, *, as_rows: bool = False
 ) -> Float[Array, "A h w"]:
-    """Attributes (:data:`ATTRS`) of a frame's Gaussians seen from camera ``dst_pose``.
+    """Attributes (:data:`ATTRS`) of a frame's Gaussians (or a crop of them starting at pixel
+    (``v0``, ``u0``)) seen from camera ``dst_pose``; ``as_rows``: as a list of the A images.
 
     Culled Gaussians (behind the near plane) get opacity 0.
     """
     R, t = lie.rotation_components(dst_pose.inverse() @ src_pose)
     # Materialised once: XLA would otherwise recompute the transform inside each attribute row.
-    x, y, z = jax.lax.optimization_barrier(lie.transform_points(R, t, source_points(g, intr)))
+    x, y, z = jax.lax.optimization_barrier(lie.transform_points(R, t, source_points(g, intr, v0, u0)))
     front = z > NEAR
     zs = jnp.where(front, z, 1.0)
     iz = 1.0 / zs
@@ -101,22 +107,8 @@ def project(
     s_uv = r2 * intr.fx * intr.fy * xz * yz
     det = s_uu * s_vv - s_uv * s_uv
     opacity = jnp.where(front, g.opacity, 0.0)
-    rgb = jnp.moveaxis(g.rgb, -1, 0)
-    return jnp.stack([u, v, zs, s_vv / det, -s_uv / det, s_uu / det, opacity, *rgb])
-
-
-def own_layer(
-    g: PixelGaussians, pose: lie.SE3, intr: Intrinsics, view_pose: lie.SE3 | None = None, *, window: int = 3
-) -> Float[Array, "A 1 H W"]:
-    """A frame's Gaussians as the candidate layer of its own view (slot (v, u) = Gaussian (v, u)),
-    with an empty margin of ``window // 2``.
-
-    ``view_pose`` (default: ``pose``) may differ slightly from ``pose``: the window stays at the
-    source pixel, the projected centres move, so gradients with respect to either pose are exact.
-    """
-    r = window // 2
-    attrs = project(g, pose, pose if view_pose is None else view_pose, intr)
-    return jnp.pad(attrs, ((0, 0), (r, r), (r, r)))[:, None]
+    rows = [u, v, zs, s_vv / det, -s_uv / det, s_uu / det, opacity, *(g.rgb[..., c] for c in range(3))]
+    return rows if as_rows else jnp.stack(rows)
 
 
 def bin_layers(
@@ -168,10 +160,16 @@ def window_offsets(window: int) -> list[tuple[int, int]]:
     return [(dy, dx) for dy in range(window) for dx in range(window) if abs(dy - r) + abs(dx - r) <= r]
 
 
-def _candidates(layers: Float[Array, "A l H W"], window: int) -> list[Float[Array, "A h w"]]:
-    """Candidates of every pixel: the window of every layer, as shifted slices."""
-    h, w = layers.shape[-2] - window + 1, layers.shape[-1] - window + 1
-    return [layers[:, l, dy : dy + h, dx : dx + w] for l in range(layers.shape[1]) for dy, dx in window_offsets(window)]
+def _candidates(layers: list[Float[Array, "l H W"]], window: int) -> list[list[Float[Array, "h w"]]]:
+    """Candidates of every pixel (each the list of its A attribute images): the window of every
+    layer, as shifted slices. ``layers`` is the list of the A attributes' slot images: on XLA:CPU
+    stacking them into one array (a concatenation) cost more than compositing."""
+    h, w = layers[0].shape[-2] - window + 1, layers[0].shape[-1] - window + 1
+    return [
+        [a[l, dy : dy + h, dx : dx + w] for a in layers]
+        for l in range(layers[0].shape[0])
+        for dy, dx in window_offsets(window)
+    ]
 
 
 def _alpha(cand, pu, pv):
@@ -191,9 +189,10 @@ def _in_front(zs, k, j):
 def _forward(layers, window, row0=0):
     """Candidates, opacities and blending weights of the pixels of ``layers`` (rows from ``row0``)."""
     cands = _candidates(layers, window)
-    h, w = cands[0].shape[-2:]
-    pv = (jnp.arange(h) + row0).astype(layers.dtype)[:, None]
-    pu = jnp.arange(w, dtype=layers.dtype)[None, :]
+    h, w = cands[0][0].shape
+    dtype = layers[0].dtype
+    pv = (jnp.arange(h) + row0).astype(dtype)[:, None]
+    pu = jnp.arange(w, dtype=dtype)[None, :]
     parts = [_alpha(c, pu, pv) for c in cands]
     alphas = [p[0] for p in parts]
     qs = [1.0 - a for a in alphas]
@@ -219,10 +218,15 @@ def composite(layers: Float[Array, "A l H W"], window: int = 3) -> Render:
     (C, C, h, w) tensor). The backward pass is written by hand in the same form (autodiff of the
     unrolled graph was 20x slower than the forward pass).
     """
-    cands, _, _, zs, weights = _forward(layers, window)
-    rgb = sum(wj * c[7:] for wj, c in zip(weights, cands))
-    depth = sum(wj * zj for wj, zj in zip(weights, zs))
-    return Render(rgb=jnp.moveaxis(rgb, 0, -1), depth=depth, alpha=sum(weights))
+    rgb, depth, alpha = _blend(*_forward(list(layers), window))
+    return Render(rgb=jnp.moveaxis(rgb, 0, -1), depth=depth, alpha=alpha)
+
+
+def _blend(cands, _parts, _qs, zs, weights):
+    """Colour ``(3, h, w)``, depth and accumulated opacity from the candidates' blending weights."""
+    weights = jax.lax.optimization_barrier(weights)  # computed once, not once per output
+    rgb = jnp.stack([sum(wj * c[7 + ch] for wj, c in zip(weights, cands)) for ch in range(3)])
+    return rgb, sum(wj * zj for wj, zj in zip(weights, zs)), sum(weights)
 
 
 def _composite_fwd(layers, window):
@@ -242,24 +246,37 @@ def _composite_bwd(window, layers, ct):
     g_img = jnp.concatenate([jnp.moveaxis(ct.rgb, -1, 0), ct.depth[None], ct.alpha[None]])
     g_img = jnp.pad(g_img, ((0, 0), (0, extra), (0, 0)))
     layers_p = jnp.pad(layers, ((0, 0), (0, 0), (0, extra), (0, 0)))
-    a, l, hh, ww = layers_p.shape
 
     def body(_, i):
         row = i * band
         lay = jax.lax.dynamic_slice_in_dim(layers_p, row, band + 2 * r, axis=2)
         g = jax.lax.dynamic_slice_in_dim(g_img, row, band, axis=1)
-        return None, _band_bwd(window, lay, g[:3], g[3], g[4], row)
+        return None, jnp.stack(_band_bwd(window, list(lay), g[:3], g[3], g[4], row))
 
     _, per_band = jax.lax.scan(body, None, jnp.arange(nb))  # (nb, A, l, band + 2r, W)
-    # Band i covers slot rows [i band, i band + band + 2r): overlap-add its last 2r rows onto band i+1.
-    tops, tails = per_band[:, :, :, :band], per_band[:, :, :, band:]
-    if r:
-        tops = tops.at[1:, :, :, : 2 * r].add(tails[:-1])
-    grad = jnp.concatenate([jnp.moveaxis(tops, 0, 2).reshape(a, l, nb * band, ww), tails[-1]], axis=2)
-    return (grad[:, :, : layers.shape[2]],)
+    return (_overlap_add(per_band, band, 2 * r, axis=2)[:, :, : layers.shape[2]],)
+
+
+def _overlap_add(per_band: Array, band: int, halo: int, axis: int) -> Array:
+    """Assemble per-band slot gradients ``(nb, ..., band + halo, ...)`` (rows on ``axis`` of a
+    band) into one array: band i covers rows ``[i band, i band + band + halo)``, so its last
+    ``halo`` rows are added onto the first rows of band i + 1."""
+    rows = axis + 1
+    take = lambda x, a, b: jax.lax.slice_in_dim(x, a, b, axis=rows)  # noqa: E731
+    tops, tails = take(per_band, 0, band), take(per_band, band, band + halo)
+    if halo:
+        first = jax.lax.slice_in_dim(tops, 1, None, axis=0)
+        head = take(first, 0, halo) + jax.lax.slice_in_dim(tails, 0, -1, axis=0)
+        tops = jnp.concatenate([jax.lax.slice_in_dim(tops, 0, 1, axis=0),
+                                jnp.concatenate([head, take(first, halo, band)], axis=rows)], axis=0)
+    tops = jnp.moveaxis(tops, 0, axis)  # (..., nb, band, ...)
+    shape = tops.shape[:axis] + (tops.shape[axis] * band,) + tops.shape[axis + 2 :]
+    return jnp.concatenate([tops.reshape(shape), tails[-1]], axis=axis)
 
 
 def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0):
+    """Gradients of one band's slots (a list of A images ``(l, band + 2r, W)``) from the band's
+    image cotangents."""
     cands, parts, qs, zs, weights = _forward(layers, window, row0)
     n = len(cands)
     parts = [list(p) for p in jax.lax.optimization_barrier([jnp.stack(p) for p in parts])]
@@ -294,7 +311,7 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0):
                     g_power * du * dv,
                     0.5 * g_power * dv * dv,
                     g_alpha * gauss,
-                    *(weights[j] * g_rgb),
+                    *(weights[j] * g_rgb[ch] for ch in range(3)),
                 ]
             )
         )
@@ -302,21 +319,100 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0):
     # Scatter the candidates' gradients back onto their slots (the transpose of _candidates).
     k = window
     offsets = window_offsets(window)
-    per_layer = []
-    for l in range(layers.shape[1]):
-        block = grads[l * len(offsets) : (l + 1) * len(offsets)]
-        per_layer.append(
-            sum(jnp.pad(gc, ((0, 0), (dy, k - 1 - dy), (dx, k - 1 - dx))) for gc, (dy, dx) in zip(block, offsets))
-        )
-    return jnp.stack(per_layer, axis=1)
+    no = len(offsets)
+
+    def slots(a, l):
+        block = grads[l * no : (l + 1) * no]
+        return sum(jnp.pad(gc[a], ((dy, k - 1 - dy), (dx, k - 1 - dx))) for gc, (dy, dx) in zip(block, offsets))
+
+    return [jnp.stack([slots(a, l) for l in range(layers[0].shape[0])]) for a in range(NUM_ATTRS)]
 
 
 composite.defvjp(_composite_fwd, _composite_bwd)
 
 
 def render_own(g: PixelGaussians, pose: lie.SE3, intr: Intrinsics, *, window: int = 3, view_pose: lie.SE3 | None = None) -> Render:
-    """Fast path: a frame's Gaussians rendered into its own view (or a pose very close to it)."""
-    return composite(own_layer(g, pose, intr, view_pose, window=window), window)
+    """Fast path: a frame's Gaussians (at camera-to-world ``pose``) rendered into its own view.
+
+    ``view_pose`` (default: ``pose``) may differ slightly from ``pose``: the candidate windows stay
+    at the source pixels, the projected centres move, so gradients with respect to either pose are
+    exact. Rendered in bands of :data:`BAND_ROWS` rows, projection included, forward and backward:
+    no full-image stack of projected attributes is ever built (on XLA:CPU building it cost more
+    than compositing).
+    """
+    return _render_own(window, g, pose, pose if view_pose is None else view_pose, intr)
+
+
+def _own_setup(window, g, band):
+    """Band geometry and the Gaussians padded for banding: ``r`` rows and columns on each side plus
+    the rows that complete the last band (depth 1, the rest 0; :func:`_own_band` empties them)."""
+    r = window // 2
+    h = g.depth.shape[-2]
+    band = min(band, h)
+    nb = -(-h // band)
+    extra = nb * band - h
+
+    def pad(x, value=0.0):
+        return jnp.pad(x, [(r, r + extra), (r, r)] + [(0, 0)] * (x.ndim - 2), constant_values=value)
+
+    return r, band, nb, extra, dataclasses.replace(jax.tree.map(pad, g), depth=pad(g.depth, 1.0))
+
+
+def _own_band(window, gb, row, pose, view_pose, intr):
+    """The own-view candidate layer ``(A, 1, band + 2r, W + 2r)`` of pixel rows
+    ``[row, row + band)``, from the padded Gaussians' rows ``[row, row + band + 2r)``: slot (v, u)
+    holds Gaussian (v - r, u - r); slots outside the image are empty (all attributes 0)."""
+    r = window // 2
+    attrs = project(gb, pose, view_pose, intr, row - r, -r, as_rows=True)
+    hb, wb = gb.depth.shape
+    v = jnp.arange(hb) + row - r
+    u = jnp.arange(wb) - r
+    inside = ((v >= 0) & (v < intr.height))[:, None] & ((u >= 0) & (u < intr.width))[None, :]
+    return [jnp.where(inside, a, 0.0)[None] for a in attrs]
+
+
+def _band_rows(window, gp, band, i):
+    r = window // 2
+    return i * band, jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, i * band, band + 2 * r, axis=0), gp)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _render_own(window, g, pose, view_pose, intr) -> Render:
+    # The forward pass in one piece: XLA:CPU runs it fastest whole (a scan over bands writes each
+    # band's output in an unvectorised in-place update).
+    h = g.depth.shape[-2]
+    *_, gp = _own_setup(window, g, h)
+    rgb, depth, alpha = _blend(*_forward(_own_band(window, gp, 0, pose, view_pose, intr), window))
+    return Render(rgb=jnp.moveaxis(rgb, 0, -1), depth=depth, alpha=alpha)
+
+
+def _render_own_fwd(window, g, pose, view_pose, intr):
+    return _render_own(window, g, pose, view_pose, intr), (g, pose, view_pose, intr)
+
+
+def _render_own_bwd(window, res, ct):
+    """Band by band: recompute the band's layer, composite's backward (:func:`_band_bwd`), then the
+    projection's VJP; Gaussian gradients are overlap-added, pose and intrinsics gradients summed."""
+    g, pose, view_pose, intr = res
+    h, w = g.depth.shape[-2:]
+    r, band, nb, extra, gp = _own_setup(window, g, BAND_ROWS)
+    g_img = jnp.concatenate([jnp.moveaxis(ct.rgb, -1, 0), ct.depth[None], ct.alpha[None]])
+    g_img = jnp.pad(g_img, ((0, 0), (0, extra), (0, 0)))
+
+    def body(acc, i):
+        row, gb = _band_rows(window, gp, band, i)
+        layer, pull = jax.vjp(lambda gb, *rest: _own_band(window, gb, row, *rest), gb, pose, view_pose, intr)
+        gi = jax.lax.dynamic_slice_in_dim(g_img, row, band, axis=1)
+        d_gb, *d_rest = pull(_band_bwd(window, layer, gi[:3], gi[3], gi[4], row))
+        return jax.tree.map(jnp.add, acc, tuple(d_rest)), d_gb
+
+    zeros = jax.tree.map(jnp.zeros_like, (pose, view_pose, intr))
+    (d_pose, d_view, d_intr), per_band = jax.lax.scan(body, zeros, jnp.arange(nb))
+    d_g = jax.tree.map(lambda x: _overlap_add(x, band, 2 * r, axis=0)[r : r + h, r : r + w], per_band)
+    return d_g, d_pose, d_view, d_intr
+
+
+_render_own.defvjp(_render_own_fwd, _render_own_bwd)
 
 
 def project_frames(gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, intr: Intrinsics) -> Float[Array, "A n"]:
