@@ -90,3 +90,31 @@ def test_ms_ssim_of_identical_images_is_one_and_small_images_are_refused():
     assert 0.0 < image.ms_ssim(a, b) < 1.0
     with pytest.raises(ValueError, match="at least 161"):
         image.ms_ssim(a[:100], b[:100])
+
+
+def test_ssim_loss_gradient_matches_autodiff_of_a_dense_window():
+    """The hand-written SSIM gradient (pred, target and mask) against autodiff of SSIM computed with
+    an explicit 11x11 window (a dense 2D convolution, float64)."""
+    jax = pytest.importorskip("jax")
+    from jax.scipy.signal import convolve2d
+
+    with jax.enable_x64(True):
+        a, b = (jnp.asarray(x, jnp.float64) for x in _pair(23, 29, seed=4))
+        x = np.arange(11) - 5
+        g = np.exp(-(x**2) / (2 * 1.5**2))
+        win = jnp.asarray(np.outer(g, g) / np.outer(g, g).sum())
+        mask = jnp.asarray(np.random.default_rng(5).random(a.shape[:2]) > 0.3, jnp.float64)
+
+        def dense(p, t, m):
+            blur = lambda z: jnp.stack([convolve2d(z[..., c], win, mode="same") for c in range(3)], -1)  # noqa: E731
+            mx, my = blur(p), blur(t)
+            sxx, syy, sxy = blur(p * p) - mx**2, blur(t * t) - my**2, blur(p * t) - mx * my
+            s = ((2 * mx * my + 1e-4) * (2 * sxy + 9e-4)) / ((mx**2 + my**2 + 1e-4) * (sxx + syy + 9e-4))
+            return 1.0 - jnp.sum(s.mean(-1) * m) / jnp.sum(m)
+
+        ours = jax.grad(losses.ssim_loss, argnums=(0, 1, 2))(a, b, mask)
+        ref = jax.grad(dense, argnums=(0, 1, 2))(a, b, mask)
+        assert float(losses.ssim_loss(a, b, mask)) == pytest.approx(float(dense(a, b, mask)), abs=1e-12)
+        for o, r in zip(ours, ref):
+            assert float(jnp.abs(r).max()) > 1e-6
+            np.testing.assert_allclose(np.asarray(o), np.asarray(r), atol=1e-10)
