@@ -104,7 +104,7 @@ def render_into(g: PixelGaussians, pose: lie.SE3, view_pose: lie.SE3, intr: Intr
         return splat.render_own(g, pose, intr, window=window, view_pose=view_pose)
 
     def other_view(_):
-        attrs = splat.project(g, pose, view_pose, intr).reshape(splat.NUM_ATTRS, -1)
+        attrs = [a.reshape(-1) for a in splat.project(g, pose, view_pose, intr, as_rows=True)]
         return splat.composite(splat.gather_layers(attrs, splat.bin_layers(attrs, intr, 1, window=window)), window)
 
     return jax.lax.cond(own, own_view, other_view, None)
@@ -202,7 +202,7 @@ def refine_pose(
     error of the previous frame's Gaussians rendered into the current frame (Adam on a left tangent
     update ``exp(xi) guess``; pixels covered by the render and with valid depth; the binning is
     redone at every step)."""
-    attrs_flat = lambda T: splat.project(g_prev, pose_prev, T, intr).reshape(splat.NUM_ATTRS, -1)  # noqa: E731
+    attrs_flat = lambda T: [a.reshape(-1) for a in splat.project(g_prev, pose_prev, T, intr, as_rows=True)]  # noqa: E731
 
     def loss_fn(xi):
         T = lie.exp(xi) @ guess

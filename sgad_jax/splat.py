@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax
@@ -112,7 +113,7 @@ def project(
 
 
 def bin_layers(
-    attrs: Float[Array, "A n"], intr: Intrinsics, layers: int, *, window: int = 3, near: float = NEAR, far: float = 100.0
+    attrs: Sequence[Float[Array, " n"]], intr: Intrinsics, layers: int, *, window: int = 3, near: float = NEAR, far: float = 100.0
 ) -> Int[Array, "l H W"]:
     """Indices of the ``layers`` nearest Gaussians whose centre rounds onto each slot (-1: none); the
     slots cover the image and a margin of ``window // 2``.
@@ -121,7 +122,7 @@ def bin_layers(
     bits left over by the index in an int32 key, then by index.
     """
     attrs = jax.lax.stop_gradient(attrs)
-    n = attrs.shape[-1]
+    n = attrs[0].shape[-1]
     r = window // 2
     h, w = intr.height + 2 * r, intr.width + 2 * r
     id_bits = max(1, math.ceil(math.log2(n)))
@@ -147,10 +148,30 @@ def bin_layers(
     return jnp.stack(out).reshape(layers, h, w)
 
 
-def gather_layers(attrs: Float[Array, "A n"], index: Int[Array, "l h w"]) -> Float[Array, "A l h w"]:
-    """Slot images of the binned Gaussians' attributes (empty slots: all zero, so opacity 0)."""
-    got = jnp.take(attrs, jnp.maximum(index, 0), axis=1)
-    return jnp.where(index >= 0, got, 0.0)
+@jax.custom_vjp
+def gather_layers(attrs: Sequence[Float[Array, " n"]], index: Int[Array, "l H W"]) -> list[Float[Array, "l H W"]]:
+    """Slot images of the binned Gaussians' attributes (empty slots: all zero, so opacity 0).
+
+    ``index`` must hold each Gaussian at most once (as :func:`bin_layers` does): the gradient is
+    then a gather too, by the inverse map (the slot of each Gaussian), instead of a scatter-add.
+    """
+    safe = jnp.maximum(index, 0)
+    return [jnp.where(index >= 0, a[safe], 0.0) for a in attrs]
+
+
+def _gather_layers_fwd(attrs, index):
+    return gather_layers(attrs, index), (index, attrs[0].shape[-1])
+
+
+def _gather_layers_bwd(res, grads):
+    index, n = res
+    flat = index.reshape(-1)
+    slot = jnp.full((n,), -1, jnp.int32).at[jnp.where(flat >= 0, flat, n)].set(jnp.arange(flat.size, dtype=jnp.int32), mode="drop")
+    safe = jnp.maximum(slot, 0)
+    return [jnp.where(slot >= 0, g.reshape(-1)[safe], 0.0) for g in grads], None
+
+
+gather_layers.defvjp(_gather_layers_fwd, _gather_layers_bwd)
 
 
 def window_offsets(window: int) -> list[tuple[int, int]]:
@@ -208,17 +229,22 @@ def _forward(layers, window, row0=0):
     return cands, parts, qs, zs, weights
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
-def composite(layers: Float[Array, "A l H W"], window: int = 3) -> Render:
+def composite(layers: Sequence[Float[Array, "l H W"]], window: int = 3) -> Render:
     """Front-to-back alpha compositing of every pixel's window candidates (sort-free, exact).
 
-    ``layers`` cover the image plus a margin of ``window // 2`` pixels on each side. Transmittance
+    ``layers`` (the A attributes' slot images, a list or an ``(A, l, H, W)`` array) cover the image
+    plus a margin of ``window // 2`` pixels on each side. Transmittance
     is ``T_j = prod_k [k in front of j] (1 - alpha_k)``; the C^2 pairwise terms are unrolled over
     (h, w) images, which XLA:CPU fuses into single loops (40x faster than a reduction over a
     (C, C, h, w) tensor). The backward pass is written by hand in the same form (autodiff of the
     unrolled graph was 20x slower than the forward pass).
     """
-    rgb, depth, alpha = _blend(*_forward(list(layers), window))
+    return _composite(window, list(layers))
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _composite(window, layers):
+    rgb, depth, alpha = _blend(*_forward(layers, window))
     return Render(rgb=jnp.moveaxis(rgb, 0, -1), depth=depth, alpha=alpha)
 
 
@@ -229,11 +255,11 @@ def _blend(cands, _parts, _qs, zs, weights):
     return rgb, sum(wj * zj for wj, zj in zip(weights, zs)), sum(weights)
 
 
-def _composite_fwd(layers, window):
-    return composite(layers, window), layers
+def _composite_fwd(window, layers):
+    return _composite(window, layers), layers
 
 
-BAND_ROWS = 48  # rows per band of the backward pass: its temporaries then stay in cache
+BAND_ROWS = 32  # rows per band of the backward passes: their temporaries then stay in cache
 
 
 def _composite_bwd(window, layers, ct):
@@ -245,16 +271,18 @@ def _composite_bwd(window, layers, ct):
     extra = nb * band - h
     g_img = jnp.concatenate([jnp.moveaxis(ct.rgb, -1, 0), ct.depth[None], ct.alpha[None]])
     g_img = jnp.pad(g_img, ((0, 0), (0, extra), (0, 0)))
-    layers_p = jnp.pad(layers, ((0, 0), (0, 0), (0, extra), (0, 0)))
+    layers_p = [jnp.pad(a, ((0, 0), (0, extra), (0, 0))) for a in layers]
 
     def body(_, i):
         row = i * band
-        lay = jax.lax.dynamic_slice_in_dim(layers_p, row, band + 2 * r, axis=2)
+        lay = [jax.lax.dynamic_slice_in_dim(a, row, band + 2 * r, axis=1) for a in layers_p]
         g = jax.lax.dynamic_slice_in_dim(g_img, row, band, axis=1)
-        return None, jnp.stack(_band_bwd(window, list(lay), g[:3], g[3], g[4], row))
+        return None, _band_bwd(window, lay, g[:3], g[3], g[4], row)
 
-    _, per_band = jax.lax.scan(body, None, jnp.arange(nb))  # (nb, A, l, band + 2r, W)
-    return (_overlap_add(per_band, band, 2 * r, axis=2)[:, :, : layers.shape[2]],)
+    _, per_band = jax.lax.scan(body, None, jnp.arange(nb))  # A arrays (nb, l, band + 2r, W)
+    rows = layers[0].shape[1]
+    grads = [_overlap_add(g, band, 2 * r, axis=1)[:, :rows] for g in per_band]
+    return (grads,)
 
 
 def _overlap_add(per_band: Array, band: int, halo: int, axis: int) -> Array:
@@ -328,7 +356,7 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0):
     return [jnp.stack([slots(a, l) for l in range(layers[0].shape[0])]) for a in range(NUM_ATTRS)]
 
 
-composite.defvjp(_composite_fwd, _composite_bwd)
+_composite.defvjp(_composite_fwd, _composite_bwd)
 
 
 def render_own(g: PixelGaussians, pose: lie.SE3, intr: Intrinsics, *, window: int = 3, view_pose: lie.SE3 | None = None) -> Render:
@@ -415,10 +443,11 @@ def _render_own_bwd(window, res, ct):
 _render_own.defvjp(_render_own_fwd, _render_own_bwd)
 
 
-def project_frames(gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, intr: Intrinsics) -> Float[Array, "A n"]:
-    """Attributes of a stack of frames' Gaussians ``(f, h, w)`` seen from ``view_pose``, flattened."""
-    attrs = jax.vmap(project, in_axes=(0, 0, None, None), out_axes=1)(gs, poses, view_pose, intr)
-    return attrs.reshape(NUM_ATTRS, -1)
+def project_frames(gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, intr: Intrinsics) -> list[Float[Array, " n"]]:
+    """Attributes (:data:`ATTRS`, a list of A arrays) of a stack of frames' Gaussians ``(f, h, w)``
+    seen from ``view_pose``, flattened."""
+    rows = jax.vmap(functools.partial(project, as_rows=True), in_axes=(0, 0, None, None))(gs, poses, view_pose, intr)
+    return [a.reshape(-1) for a in rows]
 
 
 def render(
