@@ -35,7 +35,8 @@ COVERAGE = 0.5
 class Views:
     """The views a frame is fitted to, stacked ``(v, ...)``: index 0 is the frame itself.
 
-    ``present[k]`` is False for missing neighbours (the first frames of a run); they are skipped.
+    ``present[k]`` is False for missing neighbours (the first frames of a run); their share of the
+    iterations fits the own view instead.
     """
 
     rgb: Float[Array, "v h w 3"]
@@ -157,13 +158,17 @@ def map_frame(
     """
     schedule = jnp.asarray(view_schedule(cfg, views.present.shape[0]))
     opt = optimizer(cfg)
+    # A missing neighbour's iterations fit the own view instead (through the other-view path), so
+    # that which path an iteration takes depends on the schedule alone: under vmap a data-dependent
+    # branch would run both paths at every iteration.
+    present = views.present
+    views = jax.tree.map(lambda x: jnp.where(present.reshape((-1,) + (1,) * (x.ndim - 1)), x, x[:1]), views)
 
     def step(carry, k):
         g, state = carry
-        k = jnp.where(views.present[k], k, 0)
         loss, grad = jax.value_and_grad(view_loss, argnums=1)(cfg, g, pose, views, k, intr, background, window)
         updates, state = opt.update(grad, state, g)
-        return (optax.apply_updates(g, updates), state), (loss, k)
+        return (optax.apply_updates(g, updates), state), (loss, jnp.where(present[k], k, 0))
 
     (g, _), (loss, used) = jax.lax.scan(step, (g, opt.init(g)), schedule)
     return g, MapInfo(loss=loss, view=used)

@@ -1,7 +1,17 @@
+import atexit
 import os
 import pathlib
+import shutil
+import tempfile
 
 import pytest
+
+# The tests start CLI runs in subprocesses that compile the same programs as each other and as the
+# test process: JAX's persistent compilation cache, in a folder of this session, compiles each once.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    _cache = tempfile.mkdtemp(prefix="sgad-jax-tests-xla-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
+    atexit.register(shutil.rmtree, _cache, ignore_errors=True)
 
 SHARED_DATA = pathlib.Path(os.environ.get("SGAD_SHARED_DATA", pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"))
 
