@@ -10,12 +10,12 @@ the diamond's missing corners carry about 1% of its weight, and it has 5 candida
 instead of 9: the C^2 compositing terms drop from 81 to 25. The reference renderer
 (:mod:`sgad_jax.splat_ref`) implements the same rule densely and is the test oracle.
 
-Two ways of building each pixel's candidate list, both ending in :func:`composite`:
+Two ways of building each pixel's candidate list, both composited the same way:
 
 Candidate lists are "layers": slot images of projected attributes covering the image plus a margin
 of ``K // 2`` pixels on every side (Gaussians centred just outside the image still reach it).
 
-* **own view** (:func:`own_layer`): a frame's Gaussian (v, u) projects exactly onto pixel (v, u) of
+* **own view** (:func:`render_own`): a frame's Gaussian (v, u) projects exactly onto pixel (v, u) of
   its own camera, so the candidates of pixel p are the source pixels in the window around p: static shifted
   slices, no binning. It stays exact for target poses near the frame's own pose (the window is fixed,
   the projected centres move), which is what pose gradients need.
@@ -30,8 +30,8 @@ Compositing is sort-free and exact: ``T_j = exp(sum_k [k before j] log(1 - alpha
 pixel's C candidates, with "before" meaning smaller depth, ties broken by candidate index. A
 per-pixel sort was 10x slower on XLA:CPU.
 
-Layout: per-Gaussian attributes are component-major arrays ``(A, ...)`` with the rows of
-:data:`ATTRS`; images come out as ``(h, w, 3)`` colour, ``(h, w)`` depth and accumulated opacity.
+Layout: per-Gaussian attributes are lists of A arrays in the order of :data:`ATTRS` (stacking
+them into one array cost more than compositing on XLA:CPU); images come out as ``(h, w, 3)`` colour, ``(h, w)`` depth and accumulated opacity.
 Poses are camera-to-world :class:`jaxlie.SE3`.
 """
 
@@ -250,7 +250,7 @@ def _composite(window, layers):
 
 def _blend(cands, _parts, _qs, zs, weights):
     """Colour ``(3, h, w)``, depth and accumulated opacity from the candidates' blending weights."""
-    weights = jax.lax.optimization_barrier(weights)  # computed once, not once per output
+    weights = jax.lax.optimization_barrier(weights)  # materialised once rather than fused into each output
     rgb = jnp.stack([sum(wj * c[7 + ch] for wj, c in zip(weights, cands)) for ch in range(3)])
     return rgb, sum(wj * zj for wj, zj in zip(weights, zs)), sum(weights)
 
@@ -364,9 +364,7 @@ def render_own(g: PixelGaussians, pose: lie.SE3, intr: Intrinsics, *, window: in
 
     ``view_pose`` (default: ``pose``) may differ slightly from ``pose``: the candidate windows stay
     at the source pixels, the projected centres move, so gradients with respect to either pose are
-    exact. Rendered in bands of :data:`BAND_ROWS` rows, projection included, forward and backward:
-    no full-image stack of projected attributes is ever built (on XLA:CPU building it cost more
-    than compositing).
+    exact. The backward pass runs in bands of :data:`BAND_ROWS` rows, the projection's included.
     """
     return _render_own(window, g, pose, pose if view_pose is None else view_pose, intr)
 
