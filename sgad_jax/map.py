@@ -98,6 +98,11 @@ def optimizer(cfg: MapConfig) -> optax.GradientTransformation:
     )
 
 
+def _one(tree):
+    """A single frame's pytree as a stack of one (what :func:`sgad_jax.splat.render` takes)."""
+    return jax.tree.map(lambda x: x[None], tree)
+
+
 def render_into(g: PixelGaussians, pose: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, own, window: int) -> splat.Render:
     """The frame's Gaussians in a view: the exact own-view path, or one binned layer elsewhere."""
 
@@ -105,8 +110,7 @@ def render_into(g: PixelGaussians, pose: lie.SE3, view_pose: lie.SE3, intr: Intr
         return splat.render_own(g, pose, intr, window=window, view_pose=view_pose)
 
     def other_view(_):
-        attrs = [a.reshape(-1) for a in splat.project(g, pose, view_pose, intr, as_rows=True)]
-        return splat.composite(splat.gather_layers(attrs, splat.bin_layers(attrs, intr, 1, window=window)), window)
+        return splat.render(_one(g), _one(pose), view_pose, intr, layers=1, window=window)
 
     return jax.lax.cond(own, own_view, other_view, None)
 
@@ -174,17 +178,9 @@ def map_frame(
     return g, MapInfo(loss=loss, view=used)
 
 
-def render_neighbours(
-    neighbours: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, *, layers: int = 1, window: int = 3
-) -> splat.Render:
-    """Neighbour frames' Gaussians (stacked) rendered into a view: a frame's mapping background."""
-    attrs = splat.project_frames(neighbours, poses, view_pose, intr)
-    return splat.composite(splat.gather_layers(attrs, splat.bin_layers(attrs, intr, layers, window=window)), window)
-
-
 def render_frame(g: PixelGaussians, pose: lie.SE3, background: splat.Render | None, intr: Intrinsics, *, window: int = 3) -> splat.Render:
     """A frame's view: its own Gaussians composited over its neighbours' (``background``, from
-    :func:`render_neighbours`), the image its mapping loss was fitted to. Own Gaussians come first,
+    :func:`sgad_jax.splat.render` of the neighbours, one layer), the image its mapping loss was fitted to. Own Gaussians come first,
     neighbours fill what they leave uncovered: each frame's Gaussians are fitted to its own view,
     so mixing two frames' fits of one surface by depth would blend them."""
     own = splat.render_own(g, pose, intr, window=window)
@@ -207,12 +203,9 @@ def refine_pose(
     error of the previous frame's Gaussians rendered into the current frame (Adam on a left tangent
     update ``exp(xi) guess``; pixels covered by the render and with valid depth; the binning is
     redone at every step)."""
-    attrs_flat = lambda T: [a.reshape(-1) for a in splat.project(g_prev, pose_prev, T, intr, as_rows=True)]  # noqa: E731
 
     def loss_fn(xi):
-        T = lie.exp(xi) @ guess
-        attrs = attrs_flat(T)
-        out = splat.composite(splat.gather_layers(attrs, splat.bin_layers(attrs, intr, 1, window=window)), window)
+        out = splat.render(_one(g_prev), _one(pose_prev), lie.exp(xi) @ guess, intr, layers=1, window=window)
         mask = (jax.lax.stop_gradient(out.alpha) > COVERAGE) & frame.valid
         # Colour and depth normalised by the accumulated opacity: at fractional pixel positions the
         # coverage of a frame's Gaussians dips, which says nothing about the pose.

@@ -97,7 +97,7 @@ def map_step(
     neighbour_gaussians = jax.vmap(mapping.init_gaussians, in_axes=(0, None))(neighbours, intr)
     hide = jnp.where(present, 0.0, -1e4)[:, None, None]
     neighbour_gaussians = dataclasses.replace(neighbour_gaussians, opacity_logit=neighbour_gaussians.opacity_logit + hide)
-    background = mapping.render_neighbours(neighbour_gaussians, neighbour_poses, pose, intr)
+    background = splat.render(neighbour_gaussians, neighbour_poses, pose, intr, layers=1)
     views = mapping.Views(
         rgb=jnp.concatenate([frame.rgb[None], neighbours.rgb]),
         depth=jnp.concatenate([frame.depth[None], neighbours.depth]),

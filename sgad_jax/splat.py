@@ -250,7 +250,6 @@ def _composite(window, layers):
 
 def _blend(cands, _parts, _qs, zs, weights):
     """Colour ``(3, h, w)``, depth and accumulated opacity from the candidates' blending weights."""
-    weights = jax.lax.optimization_barrier(weights)  # materialised once rather than fused into each output
     rgb = jnp.stack([sum(wj * c[7 + ch] for wj, c in zip(weights, cands)) for ch in range(3)])
     return rgb, sum(wj * zj for wj, zj in zip(weights, zs)), sum(weights)
 
@@ -262,15 +261,21 @@ def _composite_fwd(window, layers):
 BAND_ROWS = 32  # rows per band of the backward passes: their temporaries then stay in cache
 
 
-def _composite_bwd(window, layers, ct):
-    """Backward pass, band by band (a scan over row bands that accumulates the slot gradients)."""
-    r = window // 2
-    h, w = ct.depth.shape
+def _bands(ct: Render):
+    """Row bands of a backward pass: band height, count, the rows added to complete the last band,
+    and the image cotangents ``(5, rows, w)`` (colour, depth, opacity) padded to whole bands."""
+    h = ct.depth.shape[0]
     band = min(BAND_ROWS, h)
     nb = -(-h // band)
     extra = nb * band - h
     g_img = jnp.concatenate([jnp.moveaxis(ct.rgb, -1, 0), ct.depth[None], ct.alpha[None]])
-    g_img = jnp.pad(g_img, ((0, 0), (0, extra), (0, 0)))
+    return band, nb, extra, jnp.pad(g_img, ((0, 0), (0, extra), (0, 0)))
+
+
+def _composite_bwd(window, layers, ct):
+    """Backward pass, band by band (a scan over row bands that accumulates the slot gradients)."""
+    r = window // 2
+    band, nb, extra, g_img = _bands(ct)
     layers_p = [jnp.pad(a, ((0, 0), (0, extra), (0, 0))) for a in layers]
 
     def body(_, i):
@@ -369,19 +374,14 @@ def render_own(g: PixelGaussians, pose: lie.SE3, intr: Intrinsics, *, window: in
     return _render_own(window, g, pose, pose if view_pose is None else view_pose, intr)
 
 
-def _own_setup(window, g, band):
-    """Band geometry and the Gaussians padded for banding: ``r`` rows and columns on each side plus
-    the rows that complete the last band (depth 1, the rest 0; :func:`_own_band` empties them)."""
-    r = window // 2
-    h = g.depth.shape[-2]
-    band = min(band, h)
-    nb = -(-h // band)
-    extra = nb * band - h
+def _pad_gaussians(g: PixelGaussians, r: int, extra: int) -> PixelGaussians:
+    """The Gaussians padded by ``r`` rows and columns on each side and ``extra`` more rows at the
+    bottom (depth 1, the rest 0; :func:`_own_band` empties those slots)."""
 
     def pad(x, value=0.0):
         return jnp.pad(x, [(r, r + extra), (r, r)] + [(0, 0)] * (x.ndim - 2), constant_values=value)
 
-    return r, band, nb, extra, dataclasses.replace(jax.tree.map(pad, g), depth=pad(g.depth, 1.0))
+    return dataclasses.replace(jax.tree.map(pad, g), depth=pad(g.depth, 1.0))
 
 
 def _own_band(window, gb, row, pose, view_pose, intr):
@@ -397,17 +397,11 @@ def _own_band(window, gb, row, pose, view_pose, intr):
     return [jnp.where(inside, a, 0.0)[None] for a in attrs]
 
 
-def _band_rows(window, gp, band, i):
-    r = window // 2
-    return i * band, jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, i * band, band + 2 * r, axis=0), gp)
-
-
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _render_own(window, g, pose, view_pose, intr) -> Render:
     # The forward pass in one piece: XLA:CPU runs it fastest whole (a scan over bands writes each
     # band's output in an unvectorised in-place update).
-    h = g.depth.shape[-2]
-    *_, gp = _own_setup(window, g, h)
+    gp = _pad_gaussians(g, window // 2, 0)
     rgb, depth, alpha = _blend(*_forward(_own_band(window, gp, 0, pose, view_pose, intr), window))
     return Render(rgb=jnp.moveaxis(rgb, 0, -1), depth=depth, alpha=alpha)
 
@@ -421,12 +415,13 @@ def _render_own_bwd(window, res, ct):
     projection's VJP; Gaussian gradients are overlap-added, pose and intrinsics gradients summed."""
     g, pose, view_pose, intr = res
     h, w = g.depth.shape[-2:]
-    r, band, nb, extra, gp = _own_setup(window, g, BAND_ROWS)
-    g_img = jnp.concatenate([jnp.moveaxis(ct.rgb, -1, 0), ct.depth[None], ct.alpha[None]])
-    g_img = jnp.pad(g_img, ((0, 0), (0, extra), (0, 0)))
+    r = window // 2
+    band, nb, extra, g_img = _bands(ct)
+    gp = _pad_gaussians(g, r, extra)
 
     def body(acc, i):
-        row, gb = _band_rows(window, gp, band, i)
+        row = i * band
+        gb = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, row, band + 2 * r, axis=0), gp)
         layer, pull = jax.vjp(lambda gb, *rest: _own_band(window, gb, row, *rest), gb, pose, view_pose, intr)
         gi = jax.lax.dynamic_slice_in_dim(g_img, row, band, axis=1)
         d_gb, *d_rest = pull(_band_bwd(window, layer, gi[:3], gi[3], gi[4], row))
