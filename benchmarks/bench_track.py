@@ -128,7 +128,7 @@ def main() -> None:
     iters = []
     for depth, dt in zip(depths, dts):
         t0 = time.perf_counter()
-        state, T, info, _ = step(state, jnp.asarray(depth), intr, dt)
+        state, T, info, _ = step(state, jnp.asarray(depth), intr, dt, None)
         pose = np.asarray(T.as_matrix())
         ours_t.append(time.perf_counter() - t0)
         ours.append(pose)

@@ -49,7 +49,7 @@ def pack(c: list[Int[Array, "*m"]]) -> tuple[Int[Array, "*m"], Bool[Array, "*m"]
 def _search(keys: Int[Array, " n"], query: Int[Array, "*m"]) -> Int[Array, "*m"]:
     # The barrier keeps XLA from fusing the key computation into the binary-search loop, which
     # then recomputes it at every step (several times slower on XLA:CPU).
-    return jnp.searchsorted(keys, jax.lax.optimization_barrier(query), method="scan_unrolled")
+    return jnp.searchsorted(keys, jax.lax.optimization_barrier(query), method="scan")
 
 
 def _find(keys: Int[Array, " n"], query: Int[Array, "*m"]) -> tuple[Int[Array, "*m"], Bool[Array, "*m"]]:

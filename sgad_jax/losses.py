@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
@@ -86,13 +88,30 @@ def _blur_same(x: Float[Array, "... h w"]) -> Float[Array, "... h w"]:
     return y.reshape(*x.shape[:-1], -1)[..., :w]
 
 
-def _ssim_stats(x, y):
-    mx, my, exx, eyy, exy = _blur_same(jnp.stack([x, y, x * x, y * y, x * y]))
-    return mx, my, exx - mx * mx, eyy - my * my, exy - mx * my
-
-
 def _ssim(mx, my, sxx, syy, sxy):
     return ((2 * mx * my + _C1) * (2 * sxy + _C2)) / ((mx * mx + my * my + _C1) * (sxx + syy + _C2))
+
+
+class SSIMTarget(NamedTuple):
+    """A target image (channel-first) with its local means and variances: what SSIM needs of it,
+    computed once per view (:func:`ssim_target`) instead of at every optimiser step."""
+
+    image: Float[Array, "c h w"]
+    mean: Float[Array, "c h w"]
+    var: Float[Array, "c h w"]
+
+
+def ssim_target(target: Float[Array, "h w c"]) -> SSIMTarget:
+    """The SSIM statistics of a target image ``(h, w, c)`` (differentiable)."""
+    y = jnp.moveaxis(target, -1, 0)
+    my, eyy = _blur_same(jnp.stack([y, y * y]))
+    return SSIMTarget(y, my, eyy - my * my)
+
+
+def _ssim_stats(x, target: SSIMTarget):
+    y, my, syy = target
+    mx, exx, exy = _blur_same(jnp.stack([x, x * x, x * y]))
+    return mx, my, exx - mx * mx, syy, exy - mx * my
 
 
 def ssim_map(pred: Float[Array, "h w c"], target: Float[Array, "h w c"]) -> Float[Array, "h w"]:
@@ -101,40 +120,37 @@ def ssim_map(pred: Float[Array, "h w c"], target: Float[Array, "h w c"]) -> Floa
     This is the SSIM of the 3DGS training loss (zero padding at the border); the evaluation metric
     with valid filtering is :func:`sgad_jax.eval.image.ssim`.
     """
-    x, y = jnp.moveaxis(pred, -1, 0), jnp.moveaxis(target, -1, 0)
-    return channel_mean(_ssim(*_ssim_stats(x, y)), 0)
+    return channel_mean(_ssim(*_ssim_stats(jnp.moveaxis(pred, -1, 0), ssim_target(target))), 0)
 
 
 @jax.custom_vjp
-def _weighted_ssim(x: Float[Array, "c h w"], y: Float[Array, "c h w"], weight: Float[Array, "h w"]) -> Float[Array, ""]:
-    """``sum_p weight(p) mean_c SSIM(x, y)(c, p)``, with a hand-written gradient: 3 blurs per
-    input instead of autodiff's 5 transposed ones and the layout copies it made on XLA:CPU."""
-    return _weighted_ssim_fwd(x, y, weight)[0]
+def _weighted_ssim(x: Float[Array, "c h w"], target: SSIMTarget, weight: Float[Array, "h w"]) -> Float[Array, ""]:
+    """``sum_p weight(p) mean_c SSIM(x, y)(c, p)``, with a hand-written gradient: 3 blurs instead
+    of autodiff's transposed ones and the layout copies it made on XLA:CPU. The target's gradient
+    is returned with respect to its image, mean and variance (autodiff of :func:`ssim_target`
+    carries it on to the image)."""
+    return _weighted_ssim_fwd(x, target, weight)[0]
 
 
-def _weighted_ssim_fwd(x, y, weight):
-    stats = _ssim_stats(x, y)
+def _weighted_ssim_fwd(x, target, weight):
+    stats = _ssim_stats(x, target)
     s = _ssim(*stats)
-    return jnp.sum(weight * channel_mean(s, 0)), (x, y, weight, stats, s)
-
-
-def _ssim_input_grad(x, y, mx, my, sxx, syy, sxy, s, gw):
-    """d/dx of ``sum gw * SSIM`` (SSIM is symmetric: swap the roles for d/dy)."""
-    a1, a2 = 2 * mx * my + _C1, 2 * sxy + _C2
-    b1, b2 = mx * mx + my * my + _C1, sxx + syy + _C2
-    g_sxy = gw * 2 * a1 / (b1 * b2)  # d s / d sxy = 2 a1 / (b1 b2)
-    g_sxx = -gw * s / b2
-    g_mx = gw * (2 * my * a2 / (b1 * b2) - 2 * mx * s / b1) - 2 * mx * g_sxx - my * g_sxy
-    b_mx, b_exx, b_exy = _blur_same(jnp.stack([g_mx, g_sxx, g_sxy]))
-    return b_mx + 2 * x * b_exx + y * b_exy
+    return jnp.sum(weight * channel_mean(s, 0)), (x, target.image, weight, stats, s)
 
 
 def _weighted_ssim_bwd(res, g):
     x, y, weight, (mx, my, sxx, syy, sxy), s = res
     gw = g * weight / x.shape[0]
-    dx = _ssim_input_grad(x, y, mx, my, sxx, syy, sxy, s, gw)
-    dy = _ssim_input_grad(y, x, my, mx, syy, sxx, sxy, s, gw)
-    return dx, dy, g * channel_mean(s, 0)
+    a1, a2 = 2 * mx * my + _C1, 2 * sxy + _C2
+    b1, b2 = mx * mx + my * my + _C1, sxx + syy + _C2
+    g_sxy = gw * 2 * a1 / (b1 * b2)  # d s / d sxy
+    g_var = -gw * s / b2  # d s / d sxx = d s / d syy
+    # d s / d mx through s's own mx terms and through sxx = E[x^2] - mx^2, sxy = E[xy] - mx my.
+    g_mx = gw * (2 * my * a2 / (b1 * b2) - 2 * mx * s / b1) - 2 * mx * g_var - my * g_sxy
+    g_my = gw * (2 * mx * a2 / (b1 * b2) - 2 * my * s / b1) - mx * g_sxy
+    b_mx, b_exx, b_exy = _blur_same(jnp.stack([g_mx, g_var, g_sxy]))  # the blur is self-adjoint
+    dx = b_mx + 2 * x * b_exx + y * b_exy
+    return dx, SSIMTarget(x * b_exy, g_my, g_var), g * channel_mean(s, 0)
 
 
 _weighted_ssim.defvjp(_weighted_ssim_fwd, _weighted_ssim_bwd)
@@ -142,18 +158,18 @@ _weighted_ssim.defvjp(_weighted_ssim_fwd, _weighted_ssim_bwd)
 
 def ssim_loss(pred, target, mask=None) -> Float[Array, ""]:
     """``1 - SSIM`` averaged over ``mask`` (the same-padded SSIM of :func:`ssim_map`)."""
-    return _ssim_loss_cf(jnp.moveaxis(pred, -1, 0), jnp.moveaxis(target, -1, 0), mask)
+    return _ssim_loss_cf(jnp.moveaxis(pred, -1, 0), ssim_target(target), mask)
 
 
-def _ssim_loss_cf(x: Float[Array, "c h w"], y: Float[Array, "c h w"], mask) -> Float[Array, ""]:
+def _ssim_loss_cf(x: Float[Array, "c h w"], target: SSIMTarget, mask) -> Float[Array, ""]:
     m = jnp.ones(x.shape[1:], x.dtype) if mask is None else mask.astype(x.dtype)
-    return 1.0 - _weighted_ssim(x, y, m / jnp.maximum(jnp.sum(m), 1.0))
+    return 1.0 - _weighted_ssim(x, target, m / jnp.maximum(jnp.sum(m), 1.0))
 
 
 def mapping_loss(
     rgb: Float[Array, "h w 3"],
     depth: Float[Array, "h w"],
-    target_rgb: Float[Array, "h w 3"],
+    target_rgb: Float[Array, "h w 3"] | SSIMTarget,
     target_depth: Float[Array, "h w"],
     valid: Bool[Array, "h w"],
     mask=None,
@@ -162,13 +178,16 @@ def mapping_loss(
     weight_ssim: float = 0.2,
     weight_depth: float = 1.0,
 ) -> Float[Array, ""]:
-    """SGAD-SLAM's mapping loss ``rho L1 + tau (1 - SSIM) + sigma U L1_depth`` on the pixels in ``mask``."""
+    """SGAD-SLAM's mapping loss ``rho L1 + tau (1 - SSIM) + sigma U L1_depth`` on the pixels in
+    ``mask``. The target colour may be given as its :func:`ssim_target` (an optimiser loop then
+    computes its statistics once)."""
     depth_mask = valid if mask is None else valid & (mask > 0)
+    target = target_rgb if isinstance(target_rgb, SSIMTarget) else ssim_target(target_rgb)
     # Channel-first inside: the renderer composites channel-first, and on XLA:CPU reductions over a
     # minor channel axis ran several times slower.
-    x, y = jnp.moveaxis(rgb, -1, 0), jnp.moveaxis(target_rgb, -1, 0)
+    x = jnp.moveaxis(rgb, -1, 0)
     return (
-        weight_l1 * _l1_cf(x, y, mask)
-        + weight_ssim * _ssim_loss_cf(x, y, mask)
+        weight_l1 * _l1_cf(x, target.image, mask)
+        + weight_ssim * _ssim_loss_cf(x, target, mask)
         + weight_depth * depth_l1(depth, target_depth, depth_mask)
     )

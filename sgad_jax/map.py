@@ -126,10 +126,20 @@ def over(front: splat.Render, back: splat.Render) -> splat.Render:
 
 
 def view_loss(
-    cfg: MapConfig, g: PixelGaussians, pose: lie.SE3, views: Views, k, intr: Intrinsics, background: splat.Render | None = None, window: int = 3
+    cfg: MapConfig,
+    g: PixelGaussians,
+    pose: lie.SE3,
+    views: Views,
+    k,
+    intr: Intrinsics,
+    background: splat.Render | None = None,
+    window: int = 3,
+    targets: losses.SSIMTarget | None = None,
 ):
-    """The mapping loss of the frame's Gaussians in view ``k`` (0: own view, over ``background``)."""
+    """The mapping loss of the frame's Gaussians in view ``k`` (0: own view, over ``background``);
+    ``targets``: the views' colour as :func:`sgad_jax.losses.ssim_target` (stacked), if computed."""
     view = jax.tree.map(lambda x: x[k], views)
+    target = view.rgb if targets is None else jax.tree.map(lambda x: x[k], targets)
     out = render_into(g, pose, view.pose, intr, k == 0, window)
     if background is not None:
         keep = jnp.asarray(k == 0, out.alpha.dtype)
@@ -139,7 +149,7 @@ def view_loss(
     # blended depth is short by (1 - alpha) z, which is not a geometric error.
     depth = out.depth / jnp.maximum(out.alpha, 1e-3)
     return losses.mapping_loss(
-        out.rgb, depth, view.rgb, view.depth, view.valid, mask,
+        out.rgb, depth, target, view.depth, view.valid, mask,
         weight_l1=cfg.weight_l1, weight_ssim=cfg.weight_ssim, weight_depth=cfg.weight_depth,
     )
 
@@ -167,10 +177,11 @@ def map_frame(
     # branch would run both paths at every iteration.
     present = views.present
     views = jax.tree.map(lambda x: jnp.where(present.reshape((-1,) + (1,) * (x.ndim - 1)), x, x[:1]), views)
+    targets = jax.vmap(losses.ssim_target)(views.rgb)  # fixed: computed once, not at every step
 
     def step(carry, k):
         g, state = carry
-        loss, grad = jax.value_and_grad(view_loss, argnums=1)(cfg, g, pose, views, k, intr, background, window)
+        loss, grad = jax.value_and_grad(view_loss, argnums=1)(cfg, g, pose, views, k, intr, background, window, targets)
         updates, state = opt.update(grad, state, g)
         return (optax.apply_updates(g, updates), state), (loss, jnp.where(present[k], k, 0))
 

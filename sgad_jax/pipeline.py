@@ -77,7 +77,8 @@ def initial_pose(ds: Dataset) -> lie.SE3:
 
 
 def compile_step(tcfg, state: slam.SLAMState, depth, intr, dt, guess=None):
-    """The tracking step compiled once for these shapes: ``step(state, depth, intr, dt)``.
+    """The tracking step compiled once for these shapes: ``step(state, depth, intr, dt, guess)``
+    (``guess``: a pose, or None for the constant-velocity prediction, as at compile time).
 
     No derivatives are taken in the host loop, so the plain solver is used, and the state's buffers
     are donated (the geometry set is updated in place).
