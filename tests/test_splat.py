@@ -83,7 +83,7 @@ def test_own_view_matches_reference(window):
 def test_vjp_matches_reference_including_pose(band, monkeypatch):
     """``band=3``: the backward pass runs in 4 row bands (the last one partly outside the image)."""
     if band:
-        monkeypatch.setattr(splat, "BAND_ROWS", band)
+        monkeypatch.setattr(splat, "BAND_PIXELS", band * _intr().width)
     g, poses, view = _scene(2, 5), _poses(2, 6), _pose(7)
     intr = _intr()
     layers = _max_per_slot(g, poses, view)
@@ -108,7 +108,7 @@ def test_own_view_vjp_matches_reference_for_a_nearby_view(band, monkeypatch):
     """The own-view fast path keeps the source window; gradients w.r.t. the viewing pose and the
     frame's pose are exact, whole-image or in row bands (``band=3``: 4 bands, forward and backward)."""
     if band:
-        monkeypatch.setattr(splat, "BAND_ROWS", band)
+        monkeypatch.setattr(splat, "BAND_PIXELS", band * _intr().width)
     g, pose = _scene(1, 9), _pose(10)
     g1 = jax.tree.map(lambda x: x[0], g)
     intr = _intr()
