@@ -48,7 +48,8 @@ def pack(c: list[Int[Array, "*m"]]) -> tuple[Int[Array, "*m"], Bool[Array, "*m"]
 
 def _search(keys: Int[Array, " n"], query: Int[Array, "*m"]) -> Int[Array, "*m"]:
     # The barrier keeps XLA from fusing the key computation into the binary-search loop, which
-    # then recomputes it at every step (several times slower on XLA:CPU).
+    # then recomputes it at every step (several times slower on XLA:CPU). The rolled loop ran 3.4x
+    # faster than method="scan_unrolled" on a 2-core AVX2 EPYC (1.8 vs 6.3 ms for 49k queries).
     return jnp.searchsorted(keys, jax.lax.optimization_barrier(query), method="scan")
 
 

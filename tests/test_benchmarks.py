@@ -12,7 +12,7 @@ from conftest import shared
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
-def test_bench_track_prints_both_trackers(tmp_path):
+def test_bench_track_prints_both_trackers():
     pytest.importorskip("small_gicp")
     data = shared("tum_fr1_xyz")
     proc = subprocess.run(
