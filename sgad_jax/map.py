@@ -133,6 +133,7 @@ def view_loss(
     k,
     intr: Intrinsics,
     background: splat.Render | None = None,
+    *,
     window: int = 3,
     targets: losses.SSIMTarget | None = None,
 ):
@@ -181,7 +182,7 @@ def map_frame(
 
     def step(carry, k):
         g, state = carry
-        loss, grad = jax.value_and_grad(view_loss, argnums=1)(cfg, g, pose, views, k, intr, background, window, targets)
+        loss, grad = jax.value_and_grad(view_loss, argnums=1)(cfg, g, pose, views, k, intr, background, window=window, targets=targets)
         updates, state = opt.update(grad, state, g)
         return (optax.apply_updates(g, updates), state), (loss, jnp.where(present[k], k, 0))
 
