@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
 from jaxtyping import Array, Float
 
 SE3 = jaxlie.SE3
@@ -55,6 +56,37 @@ def transform_points(R: Float[Array, "3 3"], t: Float[Array, "3"], p: Float[Arra
     matmul on XLA:CPU)."""
     x, y, z = p
     return jnp.stack([R[i, 0] * x + R[i, 1] * y + R[i, 2] * z + t[i] for i in range(3)])
+
+
+def interpolate(poses: np.ndarray, times: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Camera-to-world poses at times ``at`` from poses sampled at ``times`` (non-decreasing;
+    repeated times keep their first pose): geodesic interpolation ``A exp(w log(A^-1 B))`` between
+    the samples around each query, extrapolation from the nearest pair outside them. A query equal
+    to its own sample's time (``at[i] == times[i]``) returns that pose unchanged.
+
+    TUM's colour and depth images are not synchronised: tracking estimates each frame's pose at its
+    depth image's stamp, and this moves it to the colour stamp that labels the frame.
+
+    Args:
+        poses: (n, 4, 4) poses at ``times``.
+        times: (n,) sample times.
+        at: (n,) query times, one per pose.
+
+    Returns:
+        (n, 4, 4) float64 poses.
+    """
+    poses, times, at = np.asarray(poses), np.asarray(times, np.float64), np.asarray(at, np.float64)
+    out = np.array(poses, np.float64)
+    t, first = np.unique(times, return_index=True)
+    moved = at != times
+    if len(t) < 2 or not moved.any():
+        return out
+    k = np.clip(np.searchsorted(t, at[moved], side="right") - 1, 0, len(t) - 2)
+    w = (at[moved] - t[k]) / (t[k + 1] - t[k])
+    A, B = from_matrix(poses[first][k]), from_matrix(poses[first][k + 1])
+    T = A @ exp(jnp.asarray(w, jnp.float32)[:, None] * (A.inverse() @ B).log())
+    out[moved] = np.asarray(T.as_matrix(), np.float64)
+    return out
 
 
 def point_jacobian(q: Float[Array, "*m 3"]) -> Float[Array, "*m 3 6"]:
