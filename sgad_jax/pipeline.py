@@ -366,7 +366,8 @@ class SLAM:
         self.state = checkpoint.unflatten("state", arrays, self.state)
         self.poses = list(arrays["poses"])
         self.stamps = [float(t) for t in arrays["stamps"]]
-        self.depth_stamps = [float(t) for t in arrays["depth_stamps"]]
+        # Checkpoints of releases before 2026-12-01 have no depth stamps: their frames keep their poses.
+        self.depth_stamps = [float(t) for t in arrays.get("depth_stamps", arrays["stamps"])]
         self.times, self.iters, self.last_depth_t = list(meta["times"]), list(meta["iters"]), meta["last_depth_t"]
         if self.mapper is not None:
             self.mapper.restore(arrays, meta["mapper"])
