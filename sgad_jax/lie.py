@@ -62,7 +62,8 @@ def interpolate(poses: np.ndarray, times: np.ndarray, at: np.ndarray) -> np.ndar
     """Camera-to-world poses at times ``at`` from poses sampled at ``times`` (non-decreasing;
     repeated times keep their first pose): geodesic interpolation ``A exp(w log(A^-1 B))`` between
     the samples around each query, extrapolation from the nearest pair outside them. A query equal
-    to its own sample's time (``at[i] == times[i]``) returns that pose unchanged.
+    to its own sample's time (``at[i] == times[i]``), or where either is not finite, returns that
+    pose unchanged.
 
     TUM's colour and depth images are not synchronised: tracking estimates each frame's pose at its
     depth image's stamp, and this moves it to the colour stamp that labels the frame.
@@ -77,8 +78,10 @@ def interpolate(poses: np.ndarray, times: np.ndarray, at: np.ndarray) -> np.ndar
     """
     poses, times, at = np.asarray(poses), np.asarray(times, np.float64), np.asarray(at, np.float64)
     out = np.array(poses, np.float64)
-    t, first = np.unique(times, return_index=True)
-    moved = at != times
+    finite = np.isfinite(times)
+    t, first = np.unique(times[finite], return_index=True)
+    first = np.flatnonzero(finite)[first]
+    moved = (at != times) & finite & np.isfinite(at)
     if len(t) < 2 or not moved.any():
         return out
     k = np.clip(np.searchsorted(t, at[moved], side="right") - 1, 0, len(t) - 2)

@@ -105,3 +105,7 @@ def test_interpolate_keeps_poses_at_their_own_time():
     np.testing.assert_array_equal(np.delete(got, 2, 0), np.delete(poses, 2, 0))
     mid = np.asarray(lie.to_matrix(lie.exp(jnp.full(6, 0.25))), np.float64)  # exp(a) exp(b) = exp(a+b) for parallel twists
     np.testing.assert_allclose(got[2], mid, atol=2e-6)
+    at[0], times[3] = np.nan, np.nan  # frames without a stamp keep their poses
+    got = lie.interpolate(poses, times, at)
+    np.testing.assert_array_equal(got[[0, 1, 3]], poses[[0, 1, 3]])
+    np.testing.assert_allclose(got[2], mid, atol=2e-6)
