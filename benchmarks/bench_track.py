@@ -115,9 +115,9 @@ def main() -> None:
     ds = open_dataset(cfg.data)
     samples = [ds[i] for i in range(len(ds))]  # read everything first: timings exclude file I/O
     depths = [s.depth for s in samples]
-    stamps = np.array([s.depth_timestamp for s in samples])
+    depth_stamps = np.array([s.depth_timestamp for s in samples])
     frame_stamps = np.array([s.timestamp for s in samples])
-    dts = np.diff(stamps, prepend=stamps[0]).astype(np.float32)
+    dts = np.diff(depth_stamps, prepend=depth_stamps[0]).astype(np.float32)
     gt = ds.gt_poses
     intr = ds.intrinsics
     tcfg = cfg.track
@@ -155,8 +155,8 @@ def main() -> None:
         "ratio": ours_ms / peer_ms,
         # Both trajectories moved from the depth stamps to the frames' (colour) stamps, as
         # `sgad-jax run` writes its trajectory; and as tracked, at the depth stamps.
-        "ours_ate_cm": 100 * ate(lie.interpolate(ours, stamps, frame_stamps), gt)["rmse_m"],
-        "small_gicp_ate_cm": 100 * ate(lie.interpolate(peer, stamps, frame_stamps), gt)["rmse_m"],
+        "ours_ate_cm": 100 * ate(lie.interpolate(ours, depth_stamps, frame_stamps), gt)["rmse_m"],
+        "small_gicp_ate_cm": 100 * ate(lie.interpolate(peer, depth_stamps, frame_stamps), gt)["rmse_m"],
         "ours_ate_cm_at_depth_stamps": 100 * ate(ours, gt)["rmse_m"],
         "small_gicp_ate_cm_at_depth_stamps": 100 * ate(peer, gt)["rmse_m"],
         "ours_compile_s": compile_s,

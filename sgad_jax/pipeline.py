@@ -279,7 +279,6 @@ class SLAM:
         self.depth_stamps: list[float] = []
         self.times: list[float] = []
         self.iters: list[int] = []
-        self.last_depth_t: float | None = None
         self.compile_s: float | None = None
 
     def __len__(self) -> int:
@@ -293,7 +292,7 @@ class SLAM:
             TrackingDiverged: the pose came out non-finite; the system cannot continue.
         """
         depth = jnp.asarray(sample.depth)
-        dt = jnp.float32(0.0 if self.last_depth_t is None else sample.depth_timestamp - self.last_depth_t)
+        dt = jnp.float32(sample.depth_timestamp - self.depth_stamps[-1] if self.depth_stamps else 0.0)
         frame = None if self.mapper is None else host_frame(sample)
         guess = None
         if self._predict is not None:
@@ -308,7 +307,6 @@ class SLAM:
         self.times.append(time.perf_counter() - t0)
         if not np.isfinite(pose).all():
             raise TrackingDiverged("tracking diverged (non-finite pose)")
-        self.last_depth_t = sample.depth_timestamp
         self.poses.append(pose)
         self.stamps.append(float(sample.timestamp))
         self.depth_stamps.append(float(sample.depth_timestamp))
@@ -356,7 +354,7 @@ class SLAM:
             stamps=np.asarray(self.stamps, np.float64),
             depth_stamps=np.asarray(self.depth_stamps, np.float64),
         )
-        meta = {"frames": len(self.poses), "last_depth_t": self.last_depth_t, "times": self.times, "iters": self.iters}
+        meta = {"frames": len(self.poses), "times": self.times, "iters": self.iters}
         if self.mapper is not None:
             more, meta["mapper"] = self.mapper.state()
             arrays.update(more)
@@ -366,9 +364,8 @@ class SLAM:
         self.state = checkpoint.unflatten("state", arrays, self.state)
         self.poses = list(arrays["poses"])
         self.stamps = [float(t) for t in arrays["stamps"]]
-        # Checkpoints of releases before 2026-12-01 have no depth stamps: their frames keep their poses.
-        self.depth_stamps = [float(t) for t in arrays.get("depth_stamps", arrays["stamps"])]
-        self.times, self.iters, self.last_depth_t = list(meta["times"]), list(meta["iters"]), meta["last_depth_t"]
+        self.depth_stamps = [float(t) for t in arrays["depth_stamps"]]
+        self.times, self.iters = list(meta["times"]), list(meta["iters"])
         if self.mapper is not None:
             self.mapper.restore(arrays, meta["mapper"])
 
@@ -418,6 +415,8 @@ def run(
         saved = restored[1]["identity"]
         what = "dataset" if saved["dataset"] != identity["dataset"] else "mode (--track-only)" if saved["track_only"] != track_only else "config"
         raise ConfigError(f"cannot resume {ckpt_root}: it was made with another {what}; rerun with the same settings or a new --out")
+    if restored is not None and "depth_stamps" not in restored[0]:
+        raise ConfigError(f"cannot resume {ckpt_root}: it was written by an older sgad_jax (no depth stamps); rerun without --resume or with a new --out")
     if out is not None and restored is None and main:
         for stale in (out / "gaussians", out / "renders", out / "checkpoints"):
             shutil.rmtree(stale, ignore_errors=True)
