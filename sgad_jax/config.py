@@ -59,6 +59,10 @@ class TrackConfig:
     max_correspondence: float = 0.05  # metres between a point and its match in T
     nn_weight: float = 0.1  # match score (n_b . e)^2 + nn_weight |e|^2: 0 is pure point-to-surface
     constant_velocity: bool = True
+    # A depth image identical to the previous frame's (a repeated capture: 7-Scenes repeats ~1 in 5
+    # after frame 220 of redkitchen; TUM pairs two colour images with one depth image) keeps the
+    # previous frame's pose instead of being tracked again from a moved guess.
+    hold_repeated_depth: bool = True
 
 
 @dataclasses.dataclass(frozen=True)

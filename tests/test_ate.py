@@ -1,4 +1,4 @@
-"""ATE (against evo as an oracle), Umeyama alignment, and the TUM trajectory file round trip."""
+"""ATE and RPE (against evo as an oracle), Umeyama alignment, and the TUM trajectory file round trip."""
 
 import copy
 
@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sgad_jax.eval import align_umeyama, ate
+from sgad_jax.eval import align_umeyama, ate, rpe
 from sgad_jax.io.export import read_tum_trajectory, write_tum_trajectory
 
 
@@ -59,6 +59,47 @@ def test_ate_matches_evo():
     assert ours["mean_m"] == pytest.approx(ape.get_statistic(metrics.StatisticsType.mean), rel=1e-9)
     assert ours["median_m"] == pytest.approx(ape.get_statistic(metrics.StatisticsType.median), rel=1e-9)
     assert ours["max_m"] == pytest.approx(ape.get_statistic(metrics.StatisticsType.max), rel=1e-9)
+
+
+def test_rpe_matches_evo():
+    pytest.importorskip("evo")
+    from evo.core import metrics
+    from evo.core.trajectory import PoseTrajectory3D
+
+    rng = np.random.default_rng(2)
+    gt = random_trajectory(rng, 60)
+    from scipy.spatial.transform import Rotation
+
+    noise = [se3(Rotation.from_rotvec(rng.normal(scale=0.01, size=3)).as_matrix(), rng.normal(scale=0.01, size=3)) for _ in range(60)]
+    est = se3(random_rotation(rng), rng.normal(size=3)) @ gt @ np.stack(noise)
+    stamps = np.arange(60) / 30.0
+    pair = (PoseTrajectory3D(poses_se3=list(gt), timestamps=stamps), PoseTrajectory3D(poses_se3=list(est), timestamps=stamps))
+    ours = rpe(est, gt)
+    for relation, value in [
+        (metrics.PoseRelation.translation_part, ours["trans_rmse_m"]),
+        (metrics.PoseRelation.rotation_angle_deg, ours["rot_rmse_deg"]),
+    ]:
+        ref = metrics.RPE(relation, delta=1, delta_unit=metrics.Unit.frames, all_pairs=False)
+        ref.process_data(pair)
+        assert value == pytest.approx(ref.get_statistic(metrics.StatisticsType.rmse), rel=1e-9)
+    assert ours["pairs"] == 59
+
+
+def test_rpe_sees_one_jump_only():
+    """A trajectory that is exact up to a rigid motion except for one step: only that pair errs."""
+    rng = np.random.default_rng(3)
+    gt = random_trajectory(rng, 20)
+    jump = se3(np.eye(3), np.array([0.03, 0.0, 0.04]))
+    est = gt.copy()
+    est[10:] = jump @ est[10:]  # from frame 10 on, the trajectory is shifted by 5 cm
+    est = se3(random_rotation(rng), rng.normal(size=3)) @ est
+    est[5] = np.nan  # pairs (4, 5) and (5, 6) are skipped
+    out = rpe(est, gt)
+    assert out["pairs"] == 17
+    assert out["trans_mean_m"] == pytest.approx(0.05 / 17, rel=1e-9)
+    assert out["rot_rmse_deg"] == pytest.approx(0.0, abs=1e-5)
+    with pytest.raises(ValueError, match="consecutive"):
+        rpe(np.full((4, 4, 4), np.nan), gt[:4])
 
 
 def test_known_transform_recovered():

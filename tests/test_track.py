@@ -116,3 +116,26 @@ def test_track_step_does_not_recompile(scene):
     t_err, _ = _errors(T, ds.gt_poses[3])
     assert t_err < 1e-3
     assert int(ins.overflow) == 0
+
+
+@pytest.mark.parametrize("hold", [True, False])
+def test_repeated_depth_image(scene, hold):
+    """A frame whose depth image repeats the previous one (7-Scenes' repeated captures) keeps that
+    frame's pose when ``hold_repeated_depth`` is on, and the frames after it are tracked as before."""
+    from sgad_jax.config import SLAMConfig
+    from sgad_jax.pipeline import SLAM
+
+    ds = scene[0]
+    cfg = SLAMConfig(track=dataclasses.replace(CFG, hold_repeated_depth=hold))
+    system = SLAM(cfg, ds.intrinsics, initial_pose=lie.from_matrix(ds.gt_poses[0]), track_only=True)
+    s1, s2 = ds[1], ds[2]
+    t = (s1.timestamp + s2.timestamp) / 2  # a repeated capture between frames 1 and 2
+    repeat = dataclasses.replace(s1, index=2, timestamp=t, depth_timestamp=t, depth=s1.depth.copy())
+    poses = [system.add(s) for s in (ds[0], s1, repeat, dataclasses.replace(s2, index=3))]
+    assert system.repeated == (1 if hold else 0)
+    assert len(system.times) == (3 if hold else 4)
+    assert np.array_equal(poses[1], poses[2]) == hold
+    for k, gt_index in ((1, 1), (3, 2)):
+        E = np.linalg.inv(ds.gt_poses[gt_index]) @ poses[k]
+        assert np.linalg.norm(E[:3, 3]) < 1e-3
+    assert system.finish()["repeated_depth_frames"] == system.repeated

@@ -1,6 +1,6 @@
 """Evaluation metrics."""
 
-from sgad_jax.eval.ate import align_umeyama, ate
+from sgad_jax.eval.ate import align_umeyama, ate, rpe
 from sgad_jax.eval.image import (
     LPIPSChecksumError,
     LPIPSUnavailable,
@@ -19,6 +19,7 @@ __all__ = [
     "LPIPSWeights",
     "align_umeyama",
     "ate",
+    "rpe",
     "fetch_lpips_weights",
     "load_lpips_weights",
     "lpips",

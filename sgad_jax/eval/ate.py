@@ -69,3 +69,36 @@ def ate(est_poses: np.ndarray, gt_poses: np.ndarray) -> dict:
         max_m=float(err.max()),
         pairs=n,
     )
+
+
+def rpe(est_poses: np.ndarray, gt_poses: np.ndarray) -> dict:
+    """Relative pose error between consecutive frames (TUM's RPE with a step of one frame).
+
+    For each pair (i, i + 1) the error is ``(G_i^-1 G_{i+1})^-1 (E_i^-1 E_{i+1})``: the estimated
+    motion against the true one, independent of any alignment (frame-to-frame drift). Pairs with a
+    non-finite pose among their four are ignored.
+
+    Returns:
+        dict with ``trans_rmse_m``, ``trans_mean_m`` (metres), ``rot_rmse_deg`` and ``pairs``.
+
+    Raises:
+        ValueError: if the shapes differ or no valid pair remains.
+    """
+    est, gt = np.asarray(est_poses, np.float64), np.asarray(gt_poses, np.float64)
+    if est.shape != gt.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
+        raise ValueError(f"rpe needs two (n, 4, 4) pose arrays of equal length, got {est.shape} and {gt.shape}")
+    ok = np.isfinite(est).all(axis=(1, 2)) & np.isfinite(gt).all(axis=(1, 2))
+    ok = ok[:-1] & ok[1:]
+    if not ok.any():
+        raise ValueError(f"rpe needs two consecutive frames with finite estimate and ground truth, got none of {len(est)}")
+    step = lambda T: np.linalg.inv(T[:-1][ok]) @ T[1:][ok]  # noqa: E731
+    err = np.linalg.inv(step(gt)) @ step(est)
+    trans = np.linalg.norm(err[:, :3, 3], axis=1)
+    cos = np.clip((np.trace(err[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    rot = np.degrees(np.arccos(cos))
+    return dict(
+        trans_rmse_m=float(np.sqrt(np.mean(trans**2))),
+        trans_mean_m=float(trans.mean()),
+        rot_rmse_deg=float(np.sqrt(np.mean(rot**2))),
+        pairs=int(ok.sum()),
+    )
