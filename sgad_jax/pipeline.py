@@ -305,12 +305,12 @@ class SLAM:
             and self._last_depth is not None
             and np.array_equal(sample.depth, self._last_depth, equal_nan=True)
         )
-        self._last_depth = sample.depth
         if repeated:
             pose = self.poses[-1]
             self.repeated += 1
         else:
             pose = self._track(sample, frame)
+        self._last_depth = sample.depth
         self.poses.append(pose)
         self.stamps.append(float(sample.timestamp))
         self.depth_stamps.append(float(sample.depth_timestamp))

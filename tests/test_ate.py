@@ -65,11 +65,10 @@ def test_rpe_matches_evo():
     pytest.importorskip("evo")
     from evo.core import metrics
     from evo.core.trajectory import PoseTrajectory3D
+    from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(2)
     gt = random_trajectory(rng, 60)
-    from scipy.spatial.transform import Rotation
-
     noise = [se3(Rotation.from_rotvec(rng.normal(scale=0.01, size=3)).as_matrix(), rng.normal(scale=0.01, size=3)) for _ in range(60)]
     est = se3(random_rotation(rng), rng.normal(size=3)) @ gt @ np.stack(noise)
     stamps = np.arange(60) / 30.0
