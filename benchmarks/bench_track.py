@@ -119,7 +119,7 @@ def main() -> None:
     samples = [ds[i] for i in range(len(ds))]  # read everything first: timings exclude file I/O
     depths = [s.depth for s in samples]
     hold = cfg.track.hold_repeated_depth
-    repeated = [hold and i > 0 and np.array_equal(depths[i], depths[i - 1], equal_nan=True) for i in range(len(depths))]
+    repeated = [hold and pipeline.repeats(d, prev) for d, prev in zip(depths, [None, *depths[:-1]])]
     depth_stamps = np.array([s.depth_timestamp for s in samples])
     frame_stamps = np.array([s.timestamp for s in samples])
     # Time since the previous depth image; a repeated one moves the clock on (see SLAM.add).

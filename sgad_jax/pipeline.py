@@ -88,6 +88,11 @@ def compile_step(tcfg, state: slam.SLAMState, depth, intr, dt, guess=None):
     return step.lower(tcfg, state, depth, intr, dt, guess).compile()
 
 
+def repeats(depth: np.ndarray, previous: np.ndarray | None) -> bool:
+    """Whether a depth image is, bit for bit, the previous frame's (a repeated capture)."""
+    return previous is not None and np.array_equal(depth, previous, equal_nan=True)
+
+
 def host_frame(sample) -> Frame:
     """The frame of a sample as host (numpy) arrays."""
     return jax.tree.map(np.asarray, make_frame(sample.rgb, sample.depth, sample.depth_filled))
@@ -279,12 +284,17 @@ class SLAM:
         self.depth_stamps: list[float] = []
         self.times: list[float] = []
         self.iters: list[int] = []
-        self.repeated = 0  # frames whose depth image repeated the previous one (not tracked again)
         self._last_depth: np.ndarray | None = None
         self.compile_s: float | None = None
 
     def __len__(self) -> int:
         return len(self.poses)
+
+    @property
+    def repeated(self) -> int:
+        """Frames that kept the previous frame's pose (their depth image repeated it): every other
+        frame was tracked and timed."""
+        return len(self.poses) - len(self.times)
 
     def add(self, sample) -> np.ndarray:
         """Track one frame (and queue it for mapping); returns its 4x4 camera-to-world pose at its
@@ -300,14 +310,8 @@ class SLAM:
             TrackingDiverged: the pose came out non-finite; the system cannot continue.
         """
         frame = None if self.mapper is None else host_frame(sample)
-        repeated = (
-            self.cfg.track.hold_repeated_depth
-            and self._last_depth is not None
-            and np.array_equal(sample.depth, self._last_depth, equal_nan=True)
-        )
-        if repeated:
+        if self.cfg.track.hold_repeated_depth and repeats(sample.depth, self._last_depth):
             pose = self.poses[-1]
-            self.repeated += 1
         else:
             pose = self._track(sample, frame)
         self._last_depth = sample.depth
@@ -378,7 +382,7 @@ class SLAM:
             stamps=np.asarray(self.stamps, np.float64),
             depth_stamps=np.asarray(self.depth_stamps, np.float64),
         )
-        meta = {"frames": len(self.poses), "times": self.times, "iters": self.iters, "repeated": self.repeated}
+        meta = {"frames": len(self.poses), "times": self.times, "iters": self.iters}
         if self.mapper is not None:
             more, meta["mapper"] = self.mapper.state()
             arrays.update(more)
@@ -390,7 +394,6 @@ class SLAM:
         self.stamps = [float(t) for t in arrays["stamps"]]
         self.depth_stamps = [float(t) for t in arrays["depth_stamps"]]
         self.times, self.iters = list(meta["times"]), list(meta["iters"])
-        self.repeated = int(meta.get("repeated", 0))
         if self.mapper is not None:
             self.mapper.restore(arrays, meta["mapper"])
 
