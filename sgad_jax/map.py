@@ -103,11 +103,15 @@ def _one(tree):
     return jax.tree.map(lambda x: x[None], tree)
 
 
-def render_into(g: PixelGaussians, pose: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, own, window: int) -> splat.Render:
-    """The frame's Gaussians in a view: the exact own-view path, or one binned layer elsewhere."""
+def render_into(
+    g: PixelGaussians, pose: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, own, window: int, *, own_at_pose: bool = False
+) -> splat.Render:
+    """The frame's Gaussians in a view: the exact own-view path, or one binned layer elsewhere.
+    ``own_at_pose``: the own view is seen at ``pose`` itself (``view_pose`` ignored there; the
+    faster own-pose renderer, whose image does not depend on the pose)."""
 
     def own_view(_):
-        return splat.render_own(g, pose, intr, window=window, view_pose=view_pose)
+        return splat.render_own(g, pose, intr, window=window, view_pose=None if own_at_pose else view_pose)
 
     def other_view(_):
         return splat.render(_one(g), _one(pose), view_pose, intr, layers=1, window=window)
@@ -136,12 +140,14 @@ def view_loss(
     *,
     window: int = 3,
     targets: losses.SSIMTarget | None = None,
+    own_at_pose: bool = False,
 ):
     """The mapping loss of the frame's Gaussians in view ``k`` (0: own view, over ``background``);
-    ``targets``: the views' colour as :func:`sgad_jax.losses.ssim_target` (stacked), if computed."""
+    ``targets``: the views' colour as :func:`sgad_jax.losses.ssim_target` (stacked), if computed;
+    ``own_at_pose``: the own view is the frame's camera at ``pose`` (see :func:`render_into`)."""
     view = jax.tree.map(lambda x: x[k], views)
     target = view.rgb if targets is None else jax.tree.map(lambda x: x[k], targets)
-    out = render_into(g, pose, view.pose, intr, k == 0, window)
+    out = render_into(g, pose, view.pose, intr, k == 0, window, own_at_pose=own_at_pose)
     if background is not None:
         keep = jnp.asarray(k == 0, out.alpha.dtype)
         out = over(out, jax.tree.map(lambda x: keep * x, background))
@@ -169,7 +175,8 @@ def map_frame(
     steps on its own view and its neighbours' (``views``, own view first).
 
     ``background`` is the neighbours' (fixed) Gaussians rendered into the own view; the frame's
-    Gaussians are composited over it there, as in :func:`render_frame`.
+    Gaussians are composited over it there, as in :func:`render_frame`. The own view is the
+    frame's camera at ``pose`` (``views.pose[0]`` is not read), rendered by the own-pose path.
     """
     schedule = jnp.asarray(view_schedule(cfg, views.present.shape[0]))
     opt = optimizer(cfg)
@@ -182,7 +189,9 @@ def map_frame(
 
     def step(carry, k):
         g, state = carry
-        loss, grad = jax.value_and_grad(view_loss, argnums=1)(cfg, g, pose, views, k, intr, background, window=window, targets=targets)
+        loss, grad = jax.value_and_grad(view_loss, argnums=1)(
+            cfg, g, pose, views, k, intr, background, window=window, targets=targets, own_at_pose=True
+        )
         updates, state = opt.update(grad, state, g)
         return (optax.apply_updates(g, updates), state), (loss, jnp.where(present[k], k, 0))
 

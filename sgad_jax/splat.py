@@ -112,6 +112,48 @@ def project(
     return rows if as_rows else jnp.stack(rows)
 
 
+def _offset_classes(window: int) -> tuple[list[tuple[int, int, int]], list[int]]:
+    """The distinct ``(du^2, du dv, dv^2)`` of a window's candidate offsets (a Gaussian seen from
+    a pixel of its own window, in its own view at its own pose, is this far from the pixel's
+    centre), and the class of each offset of :func:`window_offsets`."""
+    r = window // 2
+    keys = [((r - dx) ** 2, (r - dx) * (r - dy), (r - dy) ** 2) for dy, dx in window_offsets(window)]
+    classes = sorted(set(keys))
+    return classes, [classes.index(k) for k in keys]
+
+
+def project_own(g: PixelGaussians, intr: Intrinsics, window: int, v0=0, u0=0) -> list[Float[Array, "h w"]]:
+    """Attributes of a frame's Gaussians (or a crop from pixel (``v0``, ``u0``)) in their own view
+    at their own pose, where Gaussian (v, u) projects exactly onto pixel (v, u): z-depth, then the
+    opacity (clamped to :data:`MAX_ALPHA`) it has at each offset class of :func:`_offset_classes`
+    (the candidate windows are fixed, so these are per-Gaussian images), then colour.
+
+    The same image model as :func:`project` followed by :func:`_alpha`, without positions:
+    compositing needs no exponential per candidate and no position gradients.
+    """
+    h, w = g.depth.shape[-2:]
+    dtype = g.depth.dtype
+    z = g.z
+    front = z > NEAR
+    zs = jnp.where(front, z, 1.0)
+    xz = ((jnp.arange(w, dtype=dtype) + u0 - intr.cx) / intr.fx)[None, :]
+    yz = ((jnp.arange(h, dtype=dtype) + v0 - intr.cy) / intr.fy)[:, None]
+    r2 = jnp.square(g.radius / (RADIUS_SIGMAS * zs))
+    s_uu = r2 * intr.fx**2 * (1.0 + xz * xz) + DILATION
+    s_vv = r2 * intr.fy**2 * (1.0 + yz * yz) + DILATION
+    s_uv = r2 * intr.fx * intr.fy * (xz * yz)
+    det = s_uu * s_vv - s_uv * s_uv
+    opacity = jnp.where(front, g.opacity, 0.0)
+    alphas = []
+    for du2, dudv, dv2 in _offset_classes(window)[0]:
+        if du2 == dudv == dv2 == 0:
+            raw = opacity
+        else:
+            raw = opacity * jnp.exp(-0.5 * (du2 * s_vv - 2 * dudv * s_uv + dv2 * s_uu) / det)
+        alphas.append(jnp.minimum(raw, MAX_ALPHA))
+    return [zs, *alphas, *(g.rgb[..., c] for c in range(3))]
+
+
 def bin_layers(
     attrs: Sequence[Float[Array, " n"]], intr: Intrinsics, layers: int, *, window: int = 3, near: float = NEAR, far: float = 100.0
 ) -> Int[Array, "l H W"]:
@@ -207,17 +249,26 @@ def _in_front(zs, k, j):
     return zs[k] <= zs[j] if k < j else zs[k] < zs[j]
 
 
-def _forward(layers, window, row0=0):
-    """Candidates, opacities and blending weights of the pixels of ``layers`` (rows from ``row0``)."""
+def _forward(layers, window, row0=0, exact=False):
+    """Candidates, opacities and blending weights of the pixels of ``layers`` (rows from ``row0``).
+
+    ``layers`` hold :data:`ATTRS`, or with ``exact`` the own-pose attributes of :func:`project_own`
+    (each candidate's opacity is then read from its offset class's image, ``parts`` is just it).
+    """
     cands = _candidates(layers, window)
     h, w = cands[0][0].shape
     dtype = layers[0].dtype
-    pv = (jnp.arange(h) + row0).astype(dtype)[:, None]
-    pu = jnp.arange(w, dtype=dtype)[None, :]
-    parts = [_alpha(c, pu, pv) for c in cands]
+    if exact:
+        cls = _offset_classes(window)[1]
+        parts = [(c[1 + cls[j % len(cls)]],) for j, c in enumerate(cands)]
+        zs = [c[0] for c in cands]
+    else:
+        pv = (jnp.arange(h) + row0).astype(dtype)[:, None]
+        pu = jnp.arange(w, dtype=dtype)[None, :]
+        parts = [_alpha(c, pu, pv) for c in cands]
+        zs = [c[2] for c in cands]
     alphas = [p[0] for p in parts]
     qs = [1.0 - a for a in alphas]
-    zs = [c[2] for c in cands]
     n = len(cands)
     weights = []
     for j in range(n):
@@ -250,7 +301,7 @@ def _composite(window, layers):
 
 def _blend(cands, _parts, _qs, zs, weights):
     """Colour ``(3, h, w)``, depth and accumulated opacity from the candidates' blending weights."""
-    rgb = jnp.stack([sum(wj * c[7 + ch] for wj, c in zip(weights, cands)) for ch in range(3)])
+    rgb = jnp.stack([sum(wj * c[ch - 3] for wj, c in zip(weights, cands)) for ch in range(3)])
     return rgb, sum(wj * zj for wj, zj in zip(weights, zs)), sum(weights)
 
 
@@ -310,14 +361,14 @@ def _overlap_add(per_band: Array, band: int, halo: int, axis: int) -> Array:
     return jnp.concatenate([tops.reshape(shape), tails[-1]], axis=axis)
 
 
-def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0):
+def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
     """Gradients of one band's slots (a list of A images ``(l, band + 2r, W)``) from the band's
-    image cotangents."""
-    cands, parts, qs, zs, weights = _forward(layers, window, row0)
+    image cotangents (``exact``: own-pose attributes, see :func:`_forward`)."""
+    cands, parts, qs, zs, weights = _forward(layers, window, row0, exact)
     n = len(cands)
     parts = [list(p) for p in jax.lax.optimization_barrier([jnp.stack(p) for p in parts])]
     # s_j: d loss / d weight_j; ws_j = weight_j s_j.
-    ss = [g_rgb[0] * c[7] + g_rgb[1] * c[8] + g_rgb[2] * c[9] + g_depth * zs[j] + g_acc for j, c in enumerate(cands)]
+    ss = [g_rgb[0] * c[-3] + g_rgb[1] * c[-2] + g_rgb[2] * c[-1] + g_depth * zs[j] + g_acc for j, c in enumerate(cands)]
     # Materialise the per-candidate images once: left to itself, XLA fuses (and so recomputes) the
     # C-term products into each of their C consumers.
     weights, ss, qs, zs = (list(x) for x in jax.lax.optimization_barrier(
@@ -325,18 +376,27 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0):
     ws = [wj * sj for wj, sj in zip(weights, ss)]
     g_alphas = []
     for j in range(n):
-        alpha, raw = parts[j][:2]
+        alpha = parts[j][0]
         # d loss / d alpha_j = T_j s_j - (sum of ws_m over candidates m behind j) / (1 - alpha_j)
         behind = sum(jnp.where(_in_front(zs, j, m), ws[m], 0.0) for m in range(n) if m != j)
         trans = weights[j] / jnp.maximum(alpha, 1e-30)
-        g_alphas.append(jnp.where(raw < MAX_ALPHA, trans * ss[j] - behind / qs[j], 0.0))
+        g_alpha = trans * ss[j] - behind / qs[j]
+        # exact: the clamp to MAX_ALPHA is differentiated with the attributes (project_own)
+        g_alphas.append(g_alpha if exact else jnp.where(parts[j][1] < MAX_ALPHA, g_alpha, 0.0))
     g_alphas = list(jax.lax.optimization_barrier(jnp.stack(g_alphas)))
-    grads = []
+    # Each candidate's gradient rows and the attributes (indices into the layers) they belong to.
+    grads, rows = [], []
+    cls = _offset_classes(window)[1]
     for j in range(n):
+        colour = [weights[j] * g_rgb[ch] for ch in range(3)]
+        if exact:
+            grads.append(jnp.stack([weights[j] * g_depth, g_alphas[j], *colour]))
+            a = len(layers)
+            rows.append([0, 1 + cls[j % len(cls)], a - 3, a - 2, a - 1])
+            continue
         alpha, raw, gauss, du, dv = parts[j]
         u, v, z, ca, cb, cc, opacity = cands[j][:7]
-        g_alpha = g_alphas[j]
-        g_power = -g_alpha * raw
+        g_power = -g_alphas[j] * raw
         grads.append(
             jnp.stack(
                 [
@@ -346,22 +406,29 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0):
                     0.5 * g_power * du * du,
                     g_power * du * dv,
                     0.5 * g_power * dv * dv,
-                    g_alpha * gauss,
-                    *(weights[j] * g_rgb[ch] for ch in range(3)),
+                    g_alphas[j] * gauss,
+                    *colour,
                 ]
             )
         )
+        rows.append(list(range(NUM_ATTRS)))
     grads = list(jax.lax.optimization_barrier(jnp.stack(grads)))
     # Scatter the candidates' gradients back onto their slots (the transpose of _candidates).
     k = window
     offsets = window_offsets(window)
     no = len(offsets)
+    shape = layers[0].shape[1:]
 
     def slots(a, l):
-        block = grads[l * no : (l + 1) * no]
-        return sum(jnp.pad(gc[a], ((dy, k - 1 - dy), (dx, k - 1 - dx))) for gc, (dy, dx) in zip(block, offsets))
+        terms = [
+            jnp.pad(grads[j][i], ((dy, k - 1 - dy), (dx, k - 1 - dx)))
+            for j, (dy, dx) in zip(range(l * no, (l + 1) * no), offsets)
+            for i, attr in enumerate(rows[j])
+            if attr == a
+        ]
+        return sum(terms) if terms else jnp.zeros(shape, layers[0].dtype)
 
-    return [jnp.stack([slots(a, l) for l in range(layers[0].shape[0])]) for a in range(NUM_ATTRS)]
+    return [jnp.stack([slots(a, l) for l in range(layers[0].shape[0])]) for a in range(len(layers))]
 
 
 _composite.defvjp(_composite_fwd, _composite_bwd)
@@ -370,11 +437,15 @@ _composite.defvjp(_composite_fwd, _composite_bwd)
 def render_own(g: PixelGaussians, pose: lie.SE3, intr: Intrinsics, *, window: int = 3, view_pose: lie.SE3 | None = None) -> Render:
     """Fast path: a frame's Gaussians (at camera-to-world ``pose``) rendered into its own view.
 
-    ``view_pose`` (default: ``pose``) may differ slightly from ``pose``: the candidate windows stay
-    at the source pixels, the projected centres move, so gradients with respect to either pose are
-    exact. The backward pass runs in row bands of about :data:`BAND_PIXELS` pixels, the projection's included.
+    Without ``view_pose`` the frame is seen at its own pose, where every Gaussian projects exactly
+    onto its pixel: the image does not depend on ``pose`` (its gradient is zero) and compositing
+    reads each candidate's opacity from per-Gaussian images (:func:`project_own`).
+    A ``view_pose`` may differ slightly from ``pose``: the candidate windows stay at the source
+    pixels, the projected centres move, so gradients with respect to either pose are exact.
+    The backward pass runs in row bands of about :data:`BAND_PIXELS` pixels, the projection's included.
     """
-    return _render_own(window, g, pose, pose if view_pose is None else view_pose, intr)
+    exact = view_pose is None
+    return _render_own(window, exact, g, pose, pose if exact else view_pose, intr)
 
 
 def _pad_gaussians(g: PixelGaussians, r: int, extra: int) -> PixelGaussians:
@@ -387,12 +458,16 @@ def _pad_gaussians(g: PixelGaussians, r: int, extra: int) -> PixelGaussians:
     return dataclasses.replace(jax.tree.map(pad, g), depth=pad(g.depth, 1.0))
 
 
-def _own_band(window, gb, row, pose, view_pose, intr):
+def _own_band(window, exact, gb, row, pose, view_pose, intr):
     """The own-view candidate layer ``(A, 1, band + 2r, W + 2r)`` of pixel rows
     ``[row, row + band)``, from the padded Gaussians' rows ``[row, row + band + 2r)``: slot (v, u)
-    holds Gaussian (v - r, u - r); slots outside the image are empty (all attributes 0)."""
+    holds Gaussian (v - r, u - r); slots outside the image are empty (all attributes 0).
+    ``exact``: the attributes of :func:`project_own` (the poses are not used)."""
     r = window // 2
-    attrs = project(gb, pose, view_pose, intr, row - r, -r, as_rows=True)
+    if exact:
+        attrs = project_own(gb, intr, window, row - r, -r)
+    else:
+        attrs = project(gb, pose, view_pose, intr, row - r, -r, as_rows=True)
     hb, wb = gb.depth.shape
     v = jnp.arange(hb) + row - r
     u = jnp.arange(wb) - r
@@ -400,20 +475,20 @@ def _own_band(window, gb, row, pose, view_pose, intr):
     return [jnp.where(inside, a, 0.0)[None] for a in attrs]
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _render_own(window, g, pose, view_pose, intr) -> Render:
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
+def _render_own(window, exact, g, pose, view_pose, intr) -> Render:
     # The forward pass in one piece: XLA:CPU runs it fastest whole (a scan over bands writes each
     # band's output in an unvectorised in-place update).
     gp = _pad_gaussians(g, window // 2, 0)
-    rgb, depth, alpha = _blend(*_forward(_own_band(window, gp, 0, pose, view_pose, intr), window))
+    rgb, depth, alpha = _blend(*_forward(_own_band(window, exact, gp, 0, pose, view_pose, intr), window, exact=exact))
     return Render(rgb=jnp.moveaxis(rgb, 0, -1), depth=depth, alpha=alpha)
 
 
-def _render_own_fwd(window, g, pose, view_pose, intr):
-    return _render_own(window, g, pose, view_pose, intr), (g, pose, view_pose, intr)
+def _render_own_fwd(window, exact, g, pose, view_pose, intr):
+    return _render_own(window, exact, g, pose, view_pose, intr), (g, pose, view_pose, intr)
 
 
-def _render_own_bwd(window, res, ct):
+def _render_own_bwd(window, exact, res, ct):
     """Band by band: recompute the band's layer, composite's backward (:func:`_band_bwd`), then the
     projection's VJP; Gaussian gradients are overlap-added, pose and intrinsics gradients summed."""
     g, pose, view_pose, intr = res
@@ -425,9 +500,9 @@ def _render_own_bwd(window, res, ct):
     def body(acc, i):
         row = i * band
         gb = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, row, band + 2 * r, axis=0), gp)
-        layer, pull = jax.vjp(lambda gb, *rest: _own_band(window, gb, row, *rest), gb, pose, view_pose, intr)
+        layer, pull = jax.vjp(lambda gb, *rest: _own_band(window, exact, gb, row, *rest), gb, pose, view_pose, intr)
         gi = jax.lax.dynamic_slice_in_dim(g_img, row, band, axis=1)
-        d_gb, *d_rest = pull(_band_bwd(window, layer, gi[:3], gi[3], gi[4], row))
+        d_gb, *d_rest = pull(_band_bwd(window, layer, gi[:3], gi[3], gi[4], row, exact))
         return jax.tree.map(jnp.add, acc, tuple(d_rest)), d_gb
 
     zeros = jax.tree.map(jnp.zeros_like, (pose, view_pose, intr))
