@@ -371,8 +371,13 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
     ss = [g_rgb[0] * c[-3] + g_rgb[1] * c[-2] + g_rgb[2] * c[-1] + g_depth * zs[j] + g_acc for j, c in enumerate(cands)]
     # Materialise the per-candidate images once: left to itself, XLA fuses (and so recomputes) the
     # C-term products into each of their C consumers.
-    weights, ss, qs, zs = (list(x) for x in jax.lax.optimization_barrier(
-        (jnp.stack(weights), jnp.stack(ss), jnp.stack(qs), jnp.stack(zs))))
+    if exact:
+        # Here qs and zs are slices of the materialised layer: recomputing them is free, stacking
+        # them is not (own view 640x480 fwd+bwd 37.6 -> 30.4 ms; the general path got slower).
+        weights, ss = (list(x) for x in jax.lax.optimization_barrier((jnp.stack(weights), jnp.stack(ss))))
+    else:
+        weights, ss, qs, zs = (list(x) for x in jax.lax.optimization_barrier(
+            (jnp.stack(weights), jnp.stack(ss), jnp.stack(qs), jnp.stack(zs))))
     ws = [wj * sj for wj, sj in zip(weights, ss)]
     g_alphas = []
     for j in range(n):

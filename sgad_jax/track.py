@@ -125,21 +125,22 @@ def solve(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3) -
         cand = gather_candidates(geom, lie.transform_points(R, t, cloud.points), cloud.valid)
 
         def inner(s):
-            T, it, _, _, _ = s
+            T, it, _, _, _, k = s
             T, done, c, n_in = step(cand, T)
-            return T, it + 1, done, c, n_in
+            return T, it + 1, done, c, n_in, k + 1
 
         def near(T):
             return _moved(T, T_ref, reach) < _FRESH * geom.voxel_size
 
         def fresh(s):
-            T, it, done, _, _ = s
-            return (it < cfg.max_iterations) & ~done & near(T)
+            T, it, done, _, _, k = s
+            return (k == 0) | ((it < cfg.max_iterations) & ~done & near(T))
 
         # One step always (so that a non-finite pose cannot stall the outer loop), then more while
-        # the candidates are still fresh. Convergence counts only if the pose ended close to where
-        # the candidates were looked up: candidates from afar can miss the nearest Gaussians.
-        T, it, done, c, n_in = jax.lax.while_loop(fresh, inner, inner(state))
+        # the candidates are still fresh (a do-while: the step is traced, and compiled, once).
+        # Convergence counts only if the pose ended close to where the candidates were looked up:
+        # candidates from afar can miss the nearest Gaussians.
+        T, it, done, c, n_in, _ = jax.lax.while_loop(fresh, inner, (*state, jnp.zeros((), jnp.int32)))
         return T, it, done & near(T), c, n_in
 
     def more(state):
