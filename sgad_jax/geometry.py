@@ -85,6 +85,30 @@ def occupied(geom: GeometrySet, p_w: Float[Array, "3 m"]) -> Bool[Array, " m"]:
     return _find(geom.keys, key)[1]
 
 
+def running_count(flags: Bool[Array, " n"], block: int = 64) -> Int[Array, " n"]:
+    """Inclusive running count of ``flags`` (a cumulative sum), as triangular matrix products over
+    blocks of ``block`` and, recursively, over the block totals.
+
+    Exact in float32 for ``n < 2**24``. On XLA:CPU this compiles in a fraction of a second, where
+    ``cumsum`` (an ``associative_scan``: some 50 fused kernels for 2^18 entries) took a second, and
+    runs as fast.
+    """
+    n = flags.shape[0]
+    if n >= 1 << 24:
+        return jnp.cumsum(flags.astype(jnp.int32))
+
+    def cumsum(x):
+        m = x.shape[0]
+        if m <= block:
+            return x @ jnp.triu(jnp.ones((m, m), x.dtype))
+        rows = -(-m // block)
+        within = jnp.pad(x, (0, rows * block - m)).reshape(rows, block) @ jnp.triu(jnp.ones((block, block), x.dtype))
+        totals = within[:, -1]
+        return (within + (cumsum(totals) - totals)[:, None]).reshape(-1)[:m]
+
+    return cumsum(flags.astype(jnp.float32)).astype(jnp.int32)
+
+
 def insert(geom: GeometrySet, cloud_w: PointCloud) -> tuple[GeometrySet, InsertInfo]:
     """Add the points of ``cloud_w`` (world frame) whose voxels are empty; one per voxel.
 
@@ -118,8 +142,7 @@ def insert(geom: GeometrySet, cloud_w: PointCloud) -> tuple[GeometrySet, InsertI
     cap = geom.capacity
     new_pos = jnp.where(fresh, jnp.arange(m) + _search(geom.keys, nkeys), cap)
     is_new = jnp.zeros(cap, bool).at[new_pos].set(True, mode="drop")
-    # New keys at positions <= p; associative_scan is ~4x faster than cumsum here on XLA:CPU.
-    n_before = jax.lax.associative_scan(jnp.add, is_new.astype(jnp.int32))
+    n_before = running_count(is_new)  # new keys at positions <= p
     p = jnp.arange(cap)
     old_idx = jnp.clip(p - n_before, 0, cap - 1)
     new_idx = jnp.clip(n_before - 1, 0, m - 1)

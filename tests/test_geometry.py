@@ -89,3 +89,15 @@ def test_occupied():
     g, _ = geometry.insert(g, _cloud(np.array([[0.01], [0.01], [0.01]], np.float32)))
     probe = jnp.array([[0.04, 0.06, -0.01], [0.02, 0.02, 0.02], [0.03, 0.03, 0.03]])
     np.testing.assert_array_equal(np.asarray(geometry.occupied(g, probe)), [True, False, False])
+
+
+def test_running_count_matches_numpy_cumsum():
+    """The matrix-product running count equals numpy's cumulative sum, for lengths below, at and
+    above one block, not multiples of it, and up to 2^18 (three levels of blocks)."""
+    rng = np.random.default_rng(7)
+    for n in (1, 5, 64, 65, 4096, 5000, 1 << 18):
+        flags = rng.random(n) < rng.uniform(0.01, 0.99)
+        got = np.asarray(jax.jit(geometry.running_count)(jnp.asarray(flags)))
+        np.testing.assert_array_equal(got, np.cumsum(flags))
+    dense = np.ones(1 << 18, bool)  # the largest counts: exact in float32 below 2^24
+    np.testing.assert_array_equal(np.asarray(geometry.running_count(jnp.asarray(dense))), np.arange(1, (1 << 18) + 1))
