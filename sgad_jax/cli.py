@@ -36,7 +36,29 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--num-processes", type=int, default=None, help="multi-process run: number of processes (or $JAX_NUM_PROCESSES)")
     r.add_argument("--process-id", type=int, default=None, help="multi-process run: this process's id (or $JAX_PROCESS_ID)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument(
+        "--compile-cache", default=None, metavar="DIR",
+        help="keep compiled programs in DIR for later runs ('off': do not); default: $JAX_COMPILATION_CACHE_DIR, else " + DEFAULT_CACHE,
+    )
     return p
+
+
+DEFAULT_CACHE = "~/.cache/sgad_jax/xla"
+
+
+def use_compile_cache(choice: str | None) -> str | None:
+    """Point JAX's persistent compilation cache at ``choice`` (or the environment's, or the
+    default folder): a later run with the same shapes and config loads its programs instead of
+    compiling them again (tracking ~10 s, mapping 20-40 s on a 2-core CPU). Returns the folder."""
+    import jax
+
+    if choice is None:
+        choice = os.environ.get("JAX_COMPILATION_CACHE_DIR") or DEFAULT_CACHE
+    if choice.lower() == "off":
+        return None
+    path = os.path.expanduser(choice)
+    jax.config.update("jax_compilation_cache_dir", path)
+    return path
 
 
 _PRESET_FOR_LAYOUT = {"tum": "tum", "replica": "replica", "7scenes": "7scenes", "scannet": "scannet", "scannetpp": "scannetpp", "generic": "tum", "synthetic": "demo"}
@@ -59,6 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         from sgad_jax import distributed  # before anything starts JAX's backends
+
+        use_compile_cache(args.compile_cache)
 
         if args.devices is not None:
             distributed.use_cpu_devices(args.devices)

@@ -105,3 +105,22 @@ def test_tum_real_frames(tmp_path, capsys):
     assert m["frames"] == 8 and m["config"]["track"]["k"] == 23 and m["ate_rmse_cm"] < 2.0
     stamps, _ = read_tum_trajectory(out / "trajectory.txt")
     assert stamps[0] == pytest.approx(1305031102.175304, abs=1e-5)  # TUM timestamps, not indices
+
+
+def test_compile_cache_serves_a_second_run(tmp_path):
+    """`--compile-cache DIR`: the first run stores its compiled tracking step there, a second run of
+    the same command loads it (compile time drops) and gets the same trajectory."""
+    cache = tmp_path / "cache"
+    runs = []
+    for i in range(2):
+        out = tmp_path / f"run{i}"
+        proc = subprocess.run(
+            [sys.executable, "-m", "sgad_jax", "run", "--out", str(out), "--max-frames", "4", "--quiet", "--track-only",
+             "--compile-cache", str(cache), *SMALL],
+            capture_output=True, text=True, timeout=600,
+        )
+        assert proc.returncode == 0, proc.stderr
+        assert any(cache.iterdir())
+        runs.append((json.loads((out / "metrics.json").read_text()), read_tum_trajectory(out / "trajectory.txt")[1]))
+    assert runs[1][0]["compile_s"] < 0.5 * runs[0][0]["compile_s"], (runs[0][0]["compile_s"], runs[1][0]["compile_s"])
+    np.testing.assert_array_equal(runs[0][1], runs[1][1])
