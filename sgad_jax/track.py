@@ -137,7 +137,7 @@ def solve(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3) -
             return (k == 0) | ((it < cfg.max_iterations) & ~done & near(T))
 
         # One step always (so that a non-finite pose cannot stall the outer loop), then more while
-        # the candidates are still fresh (a do-while: the step is traced, and compiled, once).
+        # the candidates are still fresh (a do-while, so that the step is traced once).
         # Convergence counts only if the pose ended close to where the candidates were looked up:
         # candidates from afar can miss the nearest Gaussians.
         T, it, done, c, n_in, _ = jax.lax.while_loop(fresh, inner, (*state, jnp.zeros((), jnp.int32)))
