@@ -72,16 +72,15 @@ class Render(NamedTuple):
     alpha: Float[Array, "h w"]
 
 
-def source_points(g: PixelGaussians, intr: Intrinsics, v0=0, u0=0) -> Float[Array, "3 h w"]:
-    """Gaussian centres in their own camera: pixel rays scaled to z-depth ``|depth + offset|``.
-
-    ``g`` may be a crop of a frame's Gaussians whose first pixel is (``v0``, ``u0``).
-    """
+def rays(g: PixelGaussians, intr: Intrinsics, v0=0, u0=0) -> tuple[Float[Array, "1 w"], Float[Array, "h 1"]]:
+    """``(x / z, y / z)`` of the pixel rays of a frame's Gaussians (or of a crop of them whose first
+    pixel is (``v0``, ``u0``)): Gaussian (v, u) sits at ``z * (xz[u], yz[v], 1)`` in its camera,
+    ``z = |depth + offset|``."""
     h, w = g.depth.shape[-2:]
     dtype = g.depth.dtype
-    v, u = jnp.meshgrid(jnp.arange(h, dtype=dtype) + v0, jnp.arange(w, dtype=dtype) + u0, indexing="ij")
-    z = g.z
-    return jnp.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z])
+    xz = ((jnp.arange(w, dtype=dtype) + u0 - intr.cx) / intr.fx)[None, :]
+    yz = ((jnp.arange(h, dtype=dtype) + v0 - intr.cy) / intr.fy)[:, None]
+    return xz, yz
 
 
 def project(
@@ -93,23 +92,86 @@ def project(
     Culled Gaussians (behind the near plane) get opacity 0.
     """
     R, t = lie.rotation_components(dst_pose.inverse() @ src_pose)
-    # Materialised once: XLA would otherwise recompute the transform inside each attribute row.
-    x, y, z = jax.lax.optimization_barrier(lie.transform_points(R, t, source_points(g, intr, v0, u0)))
+    rows = _project(g, *rays(g, intr, v0, u0), R, t, intr.fx, intr.fy, intr.cx, intr.cy)
+    return rows if as_rows else jnp.stack(rows)
+
+
+def _ewa_parts(x, y, z, radius, fx, fy, cx, cy):
+    """Centre (u, v), z-depth (1 behind the near plane) and conic (a, b, c) of Gaussians at camera
+    coordinates (x, y, z) with 3-sigma ``radius``, and the intermediates their gradient uses."""
     front = z > NEAR
     zs = jnp.where(front, z, 1.0)
     iz = 1.0 / zs
-    u = intr.fx * x * iz + intr.cx
-    v = intr.fy * y * iz + intr.cy
-    # EWA: Sigma_2D = r^2 J J^T + dilation, J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]].
-    r2 = jnp.square(g.radius / RADIUS_SIGMAS) * iz * iz
     xz, yz = x * iz, y * iz
-    s_uu = r2 * intr.fx**2 * (1.0 + xz * xz) + DILATION
-    s_vv = r2 * intr.fy**2 * (1.0 + yz * yz) + DILATION
-    s_uv = r2 * intr.fx * intr.fy * xz * yz
+    # EWA: Sigma_2D = r^2 J J^T + dilation, J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]].
+    r2 = jnp.square(radius / RADIUS_SIGMAS) * iz * iz
+    s_uu = r2 * fx**2 * (1.0 + xz * xz) + DILATION
+    s_vv = r2 * fy**2 * (1.0 + yz * yz) + DILATION
+    s_uv = r2 * fx * fy * xz * yz
     det = s_uu * s_vv - s_uv * s_uv
-    opacity = jnp.where(front, g.opacity, 0.0)
-    rows = [u, v, zs, s_vv / det, -s_uv / det, s_uu / det, opacity, *(g.rgb[..., c] for c in range(3))]
-    return rows if as_rows else jnp.stack(rows)
+    out = (fx * x * iz + cx, fy * y * iz + cy, zs, s_vv / det, -s_uv / det, s_uu / det)
+    return out, (front, iz, xz, yz, r2)
+
+
+def _camera_points(g: PixelGaussians, xz, yz, R, t):
+    """Centres of Gaussians (on rays ``(xz, yz, 1)`` of their camera) in a camera at ``(R, t)``."""
+    z = g.z
+    p = (xz * z, yz * z, z)
+    return tuple(R[i, 0] * p[0] + R[i, 1] * p[1] + R[i, 2] * p[2] + t[i] for i in range(3))
+
+
+@jax.custom_vjp
+def _project(g: PixelGaussians, xz, yz, R, t, fx, fy, cx, cy) -> list[Float[Array, "h w"]]:
+    """The :data:`ATTRS` images of :func:`project`. Its backward pass recomputes the forward from
+    the inputs and differentiates the EWA projection by hand: autodiff kept a dozen intermediate
+    images alive, and the neighbour path's projection gradient used 63 MB of scratch memory
+    (21 MB now) and ran 2-4x slower."""
+    # Materialised once: XLA would otherwise recompute the transform inside each attribute row.
+    x, y, z = jax.lax.optimization_barrier(_camera_points(g, xz, yz, R, t))
+    u, v, zs, ca, cb, cc = _ewa_parts(x, y, z, g.radius, fx, fy, cx, cy)[0]
+    opacity = jnp.where(z > NEAR, g.opacity, 0.0)
+    return [u, v, zs, ca, cb, cc, opacity, *(g.rgb[..., c] for c in range(3))]
+
+
+def _project_fwd(*args):
+    return _project(*args), args
+
+
+def _project_bwd(args, cts):
+    g, xz, yz, R, t, fx, fy, cx, cy = args
+    gu, gv, gz, gca, gcb, gcc, gop = cts[:7]
+    (x, y, z), pull_points = jax.vjp(_camera_points, g, xz, yz, R, t)
+    x, y, z = jax.lax.optimization_barrier((x, y, z))
+    radius, pull_radius = jax.vjp(lambda g: g.radius, g)
+    _, pull_opacity = jax.vjp(lambda g: g.opacity, g)
+    (_, _, _, ca, cb, cc), (front, iz, xz_, yz_, r2) = _ewa_parts(x, y, z, radius, fx, fy, cx, cy)
+    # Conic C = S^-1, so dC = -C dS C: the gradient with respect to the covariance S is
+    # H = -C G C, G = [[gca, gcb / 2], [gcb / 2, gcc]]; s_uv sits in both off-diagonal entries.
+    m00, m01 = gca * ca + 0.5 * gcb * cb, gca * cb + 0.5 * gcb * cc
+    m10, m11 = 0.5 * gcb * ca + gcc * cb, 0.5 * gcb * cb + gcc * cc
+    g_uu = -(ca * m00 + cb * m10)
+    g_vv = -(cb * m01 + cc * m11)
+    g_uv = -2.0 * (ca * m01 + cb * m11)
+    fxx, fyy, fxy = fx * fx, fy * fy, fx * fy
+    g_r2 = g_uu * fxx * (1.0 + xz_ * xz_) + g_vv * fyy * (1.0 + yz_ * yz_) + g_uv * fxy * xz_ * yz_
+    g_xz = gu * fx + r2 * (g_uu * fxx * 2.0 * xz_ + g_uv * fxy * yz_)
+    g_yz = gv * fy + r2 * (g_vv * fyy * 2.0 * yz_ + g_uv * fxy * xz_)
+    g_iz = g_r2 * 2.0 * jnp.square(radius / RADIUS_SIGMAS) * iz + g_xz * x + g_yz * y
+    g_z = jnp.where(front, gz - g_iz * iz * iz, 0.0)
+    g_radius = g_r2 * 2.0 * jnp.square(iz / RADIUS_SIGMAS) * radius
+
+    def total(gr, like):  # the gradient of a scalar (or broadcast) input is a sum
+        return jnp.sum(gr, axis=tuple(range(gr.ndim - jnp.ndim(like)))).reshape(jnp.shape(like))
+
+    g_fx = total(gu * xz_ + r2 * (g_uu * 2.0 * fx * (1.0 + xz_ * xz_) + g_uv * fy * xz_ * yz_), fx)
+    g_fy = total(gv * yz_ + r2 * (g_vv * 2.0 * fy * (1.0 + yz_ * yz_) + g_uv * fx * xz_ * yz_), fy)
+    d_g, d_xz, d_yz, d_R, d_t = pull_points((g_xz * iz, g_yz * iz, g_z))
+    d_rgb = dataclasses.replace(jax.tree.map(jnp.zeros_like, g), rgb=jnp.stack(cts[7:], axis=-1))
+    d_g = jax.tree.map(lambda *xs: sum(xs), d_g, pull_radius(g_radius)[0], pull_opacity(jnp.where(front, gop, 0.0))[0], d_rgb)
+    return d_g, d_xz, d_yz, d_R, d_t, g_fx, g_fy, total(gu, cx), total(gv, cy)
+
+
+_project.defvjp(_project_fwd, _project_bwd)
 
 
 def _offset_classes(window: int) -> tuple[list[tuple[int, int, int]], list[int]]:
@@ -131,13 +193,10 @@ def project_own(g: PixelGaussians, intr: Intrinsics, window: int, v0=0, u0=0) ->
     The same image model as :func:`project` followed by :func:`_alpha`, without positions:
     compositing needs no exponential per candidate and no position gradients.
     """
-    h, w = g.depth.shape[-2:]
-    dtype = g.depth.dtype
     z = g.z
     front = z > NEAR
     zs = jnp.where(front, z, 1.0)
-    xz = ((jnp.arange(w, dtype=dtype) + u0 - intr.cx) / intr.fx)[None, :]
-    yz = ((jnp.arange(h, dtype=dtype) + v0 - intr.cy) / intr.fy)[:, None]
+    xz, yz = rays(g, intr, v0, u0)
     r2 = jnp.square(g.radius / (RADIUS_SIGMAS * zs))
     s_uu = r2 * intr.fx**2 * (1.0 + xz * xz) + DILATION
     s_vv = r2 * intr.fy**2 * (1.0 + yz * yz) + DILATION
@@ -311,7 +370,9 @@ def _composite_fwd(window, layers):
 
 #: Pixels per band of the backward passes (32 rows of 640), so that their temporaries stay in
 #: cache: at 640x480 the render gradients ran 1.2-1.4x faster with 32-row bands than with 64-row
-#: ones, at 320x240 up to 10% faster with 64-row bands than with 32-row ones.
+#: ones, at 320x240 up to 10% faster with 64-row bands than with 32-row ones. The binned path
+#: divides it by its layer count (two layers: 15 rows of 642 slots; 16 rows measured 118 ms
+#: against 130-154 ms with 32 rows for the compositing gradient at 640x480).
 BAND_PIXELS = 32 * 640
 
 
@@ -327,21 +388,35 @@ def _bands(ct: Render):
 
 
 def _composite_bwd(window, layers, ct):
-    """Backward pass, band by band (a scan over row bands that accumulates the slot gradients)."""
+    """Backward pass, band by band: a loop over bands of slot rows, each band's gradients written
+    in place into the slot-gradient images (no overlap-add afterwards, no padded copy of the layers).
+
+    The slots of rows ``[y0, y0 + band)`` are candidates of the pixel rows ``[y0 - 2r, y0 + band)``:
+    each band runs the compositing backward over the ``band + 2r`` pixel rows from ``s0`` (that
+    start, clamped into the image) and keeps the slot rows it has complete."""
     r = window // 2
-    band, nb, extra, g_img = _bands(ct)
-    layers_p = [jnp.pad(a, ((0, 0), (0, extra), (0, 0))) for a in layers]
+    l, rows, wp = layers[0].shape
+    g_img = jnp.concatenate([jnp.moveaxis(ct.rgb, -1, 0), ct.depth[None], ct.alpha[None]])
+    # Bands shrink with the candidate count: their per-candidate images should stay in cache.
+    band = max(1, min(rows - 4 * r, BAND_PIXELS // (wp * l)))
+    short = band + 4 * r - rows  # > 0 only for images of fewer than 2r + 1 rows
+    if short > 0:
+        layers = [jnp.pad(a, ((0, 0), (0, short), (0, 0))) for a in layers]
+        g_img = jnp.pad(g_img, ((0, 0), (0, short), (0, 0)))
+    total = max(rows, band + 4 * r)
 
-    def body(_, i):
-        row = i * band
-        lay = [jax.lax.dynamic_slice_in_dim(a, row, band + 2 * r, axis=1) for a in layers_p]
-        g = jax.lax.dynamic_slice_in_dim(g_img, row, band, axis=1)
-        return None, _band_bwd(window, lay, g[:3], g[3], g[4], row)
+    def body(i, grads):
+        y0 = jnp.minimum(i * band, rows - band)  # the last band overlaps its predecessor
+        s0 = jnp.clip(y0 - 2 * r, 0, total - band - 4 * r)
+        lay = [jax.lax.dynamic_slice_in_dim(a, s0, band + 4 * r, axis=1) for a in layers]
+        g = jax.lax.dynamic_slice_in_dim(g_img, s0, band + 2 * r, axis=1)
+        per = _band_bwd(window, lay, g[:3], g[3], g[4], s0)
+        keep = [jax.lax.dynamic_slice_in_dim(p, y0 - s0, band, axis=1) for p in per]
+        return [jax.lax.dynamic_update_slice_in_dim(a, k, y0, axis=1) for a, k in zip(grads, keep)]
 
-    _, per_band = jax.lax.scan(body, None, jnp.arange(nb))  # A arrays (nb, l, band + 2r, W)
-    rows = layers[0].shape[1]
-    grads = [_overlap_add(g, band, 2 * r, axis=1)[:, :rows] for g in per_band]
-    return (grads,)
+    zeros = [jnp.zeros((l, total, wp), a.dtype) for a in layers]
+    grads = jax.lax.fori_loop(0, -(-rows // band), body, zeros)
+    return ([a[:, :rows] for a in grads],)
 
 
 def _overlap_add(per_band: Array, band: int, halo: int, axis: int) -> Array:
@@ -418,7 +493,12 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
             )
         )
         rows.append(list(range(NUM_ATTRS)))
-    grads = list(jax.lax.optimization_barrier(jnp.stack(grads)))
+    if layers[0].shape[0] == 1:
+        # One layer: materialising the per-candidate gradients is faster (43 vs 52 ms for an
+        # other view's fwd+bwd at 640x480); with two layers (10 candidates) their images no
+        # longer fit in cache and letting XLA fuse them into the slot sums is faster (117-118 vs
+        # 134-154 ms).
+        grads = list(jax.lax.optimization_barrier(jnp.stack(grads)))
     # Scatter the candidates' gradients back onto their slots (the transpose of _candidates).
     k = window
     offsets = window_offsets(window)
