@@ -7,7 +7,10 @@ compile time:
 * the own-view fast path (a frame's Gaussians into its own view) at 640x480 and 320x240, forward
   and forward + backward (gradient of a scalar loss with respect to every Gaussian attribute);
 * the neighbour path: the current frame's Gaussians and 2 neighbours' into one 640x480 view
-  (binned afresh in every call), forward + backward;
+  (the general path for all three: binned afresh in every call, 2 layers), forward + backward;
+* the same three frames composed as the pipeline renders a frame's view (``render_frame``: the
+  current frame's Gaussians by the own-pose path over its 2 neighbours', binned in one layer),
+  forward + backward with respect to all three frames' Gaussians;
 * one full ``map_frame`` (``--iterations``, default 100) at 320x240 with 2 neighbour views.
 
 Usage::
@@ -16,7 +19,8 @@ Usage::
 
 Prints one JSON object with ``own_640x480_fwd_ms``, ``own_640x480_fwd_bwd_ms``,
 ``own_320x240_fwd_ms``, ``own_320x240_fwd_bwd_ms``, ``neighbours2_640x480_fwd_ms``,
-``neighbours2_640x480_fwd_bwd_ms``, ``map_frame_320x240_s``, ``compile_s`` (total; ``compile_s_by_entry`` each) and the
+``neighbours2_640x480_fwd_bwd_ms``, ``neighbours2_pipeline_640x480_fwd_ms``,
+``neighbours2_pipeline_640x480_fwd_bwd_ms``, ``map_frame_320x240_s``, ``compile_s`` (total; ``compile_s_by_entry`` each) and the
 settings. Without ``--data`` (or when the folder is missing) the built-in synthetic scene is used.
 """
 
@@ -92,6 +96,17 @@ def main(argv: list[str] | None = None) -> int:
             nb_fwd = jax.jit(lambda gs: splat.render(gs, ps, poses[2], intr))
             nb_bwd = jax.jit(jax.grad(lambda gs: loss(splat.render(gs, ps, poses[2], intr))))
             for key, fn in ((f"neighbours2_{size}_fwd", nb_fwd), (f"neighbours2_{size}_fwd_bwd", nb_bwd)):
+                compile_s[key], t = _timed(fn, gs, repeats=args.repeats)
+                out[key + "_ms"] = 1000 * t
+            nb_poses = jax.tree.map(stack, poses[1], poses[0])
+
+            def frame_view(gs):  # the current frame (index 2) over its neighbours
+                nb = jax.tree.map(lambda x: x[:2][::-1], gs)
+                return mapping.render_frame(jax.tree.map(lambda x: x[2], gs), poses[2], splat.render(nb, nb_poses, poses[2], intr, layers=1), intr)
+
+            pipe_fwd = jax.jit(frame_view)
+            pipe_bwd = jax.jit(jax.grad(lambda gs: loss(frame_view(gs))))
+            for key, fn in ((f"neighbours2_pipeline_{size}_fwd", pipe_fwd), (f"neighbours2_pipeline_{size}_fwd_bwd", pipe_bwd)):
                 compile_s[key], t = _timed(fn, gs, repeats=args.repeats)
                 out[key + "_ms"] = 1000 * t
         else:

@@ -81,25 +81,28 @@ def test_own_view_matches_reference(window):
 
 @pytest.mark.parametrize("band", [None, 3])
 def test_vjp_matches_reference_including_pose(band, monkeypatch):
-    """``band=3``: the backward pass runs in 4 row bands (the last one partly outside the image)."""
+    """Gradients with respect to the Gaussians, the viewing pose, the frames' poses and the
+    intrinsics. ``band=3``: the backward pass runs in row bands of a few slot rows."""
     if band:
         monkeypatch.setattr(splat, "BAND_PIXELS", band * _intr().width)
     g, poses, view = _scene(2, 5), _poses(2, 6), _pose(7)
-    intr = _intr()
     layers = _max_per_slot(g, poses, view)
+    moved = jax.vmap(lambda e, p: lie.exp(e) @ p)
 
-    def fast(g, xi):
-        return splat.render(g, poses, lie.exp(xi) @ view, intr, layers=layers)
+    def fast(g, xi, eta, intr):
+        return splat.render(g, moved(eta, poses), lie.exp(xi) @ view, intr, layers=layers)
 
-    def ref(g, xi):
-        return splat_ref.render(g, poses, lie.exp(xi) @ view, intr)
+    def ref(g, xi, eta, intr):
+        return splat_ref.render(g, moved(eta, poses), lie.exp(xi) @ view, intr)
 
-    xi = jnp.zeros(6)
-    out, vjp_fast = jax.vjp(fast, g, xi)
-    _, vjp_ref = jax.vjp(ref, g, xi)
+    args = (g, jnp.zeros(6), jnp.zeros((2, 6)), _intr())
+    out, vjp_fast = jax.vjp(fast, *args)
+    _, vjp_ref = jax.vjp(ref, *args)
     ct = _cotangent(out, 8)
     gf, gr = vjp_fast(ct), vjp_ref(ct)
-    assert float(jnp.abs(gr[1]).max()) > 1e-3  # the pose gradient is not trivially zero
+    assert float(jnp.abs(gr[1]).max()) > 1e-3  # the pose gradients are not trivially zero
+    assert float(jnp.abs(gr[2]).max()) > 1e-3
+    assert min(abs(float(x)) for x in jax.tree.leaves(gr[3])) > 1e-3  # nor those of fx, fy, cx, cy
     _close(gf, gr, tol=1e-8)
 
 
