@@ -160,8 +160,12 @@ def _project_bwd(args, cts):
     g_z = jnp.where(front, gz - g_iz * iz * iz, 0.0)
     g_radius = g_r2 * 2.0 * jnp.square(iz / RADIUS_SIGMAS) * radius
 
-    def total(gr, like):  # the gradient of a scalar (or broadcast) input is a sum
-        return jnp.sum(gr, axis=tuple(range(gr.ndim - jnp.ndim(like)))).reshape(jnp.shape(like))
+    def total(gr, like):
+        """The gradient of a scalar (or broadcast) input: a sum, also over the manual axes
+        (``shard_map``) along which ``like`` is replicated and ``gr`` is not."""
+        out = jnp.sum(gr, axis=tuple(range(gr.ndim - jnp.ndim(like)))).reshape(jnp.shape(like))
+        axes = tuple(sorted(_varying_axes(out) - _varying_axes(like)))
+        return jax.lax.psum(out, axes) if axes else out
 
     g_fx = total(gu * xz_ + r2 * (g_uu * 2.0 * fx * (1.0 + xz_ * xz_) + g_uv * fy * xz_ * yz_), fx)
     g_fy = total(gv * yz_ + r2 * (g_vv * 2.0 * fy * (1.0 + yz_ * yz_) + g_uv * fx * xz_ * yz_), fy)
@@ -172,6 +176,13 @@ def _project_bwd(args, cts):
 
 
 _project.defvjp(_project_fwd, _project_bwd)
+
+
+def _varying_axes(x) -> set[str]:
+    """The ``shard_map`` mesh axes along which ``x`` varies (JAX's manual axis type)."""
+    aval = jax.typeof(x)
+    mat = getattr(aval, "manual_axis_type", None)
+    return set(mat.varying) if mat is not None else set(getattr(aval, "vma", ()))
 
 
 def _offset_classes(window: int) -> tuple[list[tuple[int, int, int]], list[int]]:
@@ -414,7 +425,7 @@ def _composite_bwd(window, layers, ct):
         keep = [jax.lax.dynamic_slice_in_dim(p, y0 - s0, band, axis=1) for p in per]
         return [jax.lax.dynamic_update_slice_in_dim(a, k, y0, axis=1) for a, k in zip(grads, keep)]
 
-    zeros = [jnp.zeros((l, total, wp), a.dtype) for a in layers]
+    zeros = [jnp.zeros_like(a, shape=(l, total, wp)) for a in layers]  # varying like the layers under shard_map
     grads = jax.lax.fori_loop(0, -(-rows // band), body, zeros)
     return ([a[:, :rows] for a in grads],)
 
