@@ -125,7 +125,7 @@ def _project(g: PixelGaussians, xz, yz, R, t, fx, fy, cx, cy) -> list[Float[Arra
     """The :data:`ATTRS` images of :func:`project`. Its backward pass recomputes the forward from
     the inputs and differentiates the EWA projection by hand: autodiff kept a dozen intermediate
     images alive, and the neighbour path's projection gradient used 63 MB of scratch memory
-    (21 MB now) and ran 2-4x slower."""
+    (32 MB now) and ran 2-4x slower."""
     # Materialised once: XLA would otherwise recompute the transform inside each attribute row.
     # (Stacked: the neighbour path's forward ran 104-115 ms with a tuple here, 94-104 ms with a stack.)
     x, y, z = jax.lax.optimization_barrier(jnp.stack(_camera_points(g, xz, yz, R, t)))
