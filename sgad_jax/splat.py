@@ -27,7 +27,8 @@ of ``K // 2`` pixels on every side (Gaussians centred just outside the image sti
   surfaces they are hidden anyway).
 
 Compositing is sort-free and exact: ``T_j = exp(sum_k [k before j] log(1 - alpha_k))`` over a
-pixel's C candidates, with "before" meaning smaller depth, ties broken by candidate index. A
+pixel's C candidates, with "before" meaning smaller depth in the view, ties broken by candidate
+index (in a frame's own view at its own pose: smaller measured depth, see :func:`render_own`). A
 per-pixel sort was 10x slower on XLA:CPU.
 
 Layout: per-Gaussian attributes are lists of A arrays in the order of :data:`ATTRS` (stacking
@@ -198,9 +199,10 @@ def _offset_classes(window: int) -> tuple[list[tuple[int, int, int]], list[int]]
 
 def project_own(g: PixelGaussians, intr: Intrinsics, window: int, v0=0, u0=0) -> list[Float[Array, "h w"]]:
     """Attributes of a frame's Gaussians (or a crop from pixel (``v0``, ``u0``)) in their own view
-    at their own pose, where Gaussian (v, u) projects exactly onto pixel (v, u): z-depth, then the
-    opacity (clamped to :data:`MAX_ALPHA`) it has at each offset class of :func:`_offset_classes`
-    (the candidate windows are fixed, so these are per-Gaussian images), then colour.
+    at their own pose, where Gaussian (v, u) projects exactly onto pixel (v, u): z-depth, the
+    compositing order key (the measured depth ``D``, see :func:`render_own`), then the opacity
+    (clamped to :data:`MAX_ALPHA`) it has at each offset class of :func:`_offset_classes` (the
+    candidate windows are fixed, so these are per-Gaussian images), then colour.
 
     The same image model as :func:`project` followed by :func:`_alpha`, without positions:
     compositing needs no exponential per candidate and no position gradients.
@@ -222,7 +224,7 @@ def project_own(g: PixelGaussians, intr: Intrinsics, window: int, v0=0, u0=0) ->
         else:
             raw = opacity * jnp.exp(-0.5 * (du2 * s_vv - 2 * dudv * s_uv + dv2 * s_uu) / det)
         alphas.append(jnp.minimum(raw, MAX_ALPHA))
-    return [zs, *alphas, *(g.rgb[..., c] for c in range(3))]
+    return [zs, g.depth, *alphas, *(g.rgb[..., c] for c in range(3))]
 
 
 def bin_layers(
@@ -321,23 +323,25 @@ def _in_front(zs, k, j):
 
 
 def _forward(layers, window, row0=0, exact=False):
-    """Candidates, opacities and blending weights of the pixels of ``layers`` (rows from ``row0``).
+    """Candidates, opacities, depths, blending weights and compositing order keys of the pixels of
+    ``layers`` (rows from ``row0``).
 
-    ``layers`` hold :data:`ATTRS`, or with ``exact`` the own-pose attributes of :func:`project_own`
-    (each candidate's opacity is then read from its offset class's image, ``parts`` is just it).
+    ``layers`` hold :data:`ATTRS` (composited in depth order), or with ``exact`` the own-pose
+    attributes of :func:`project_own` (each candidate's opacity is then read from its offset
+    class's image, ``parts`` is just it; composited in the order of the measured depths).
     """
     cands = _candidates(layers, window)
     h, w = cands[0][0].shape
     dtype = layers[0].dtype
     if exact:
         cls = _offset_classes(window)[1]
-        parts = [(c[1 + cls[j % len(cls)]],) for j, c in enumerate(cands)]
-        zs = [c[0] for c in cands]
+        parts = [(c[2 + cls[j % len(cls)]],) for j, c in enumerate(cands)]
+        zs, keys = [c[0] for c in cands], [c[1] for c in cands]
     else:
         pv = (jnp.arange(h) + row0).astype(dtype)[:, None]
         pu = jnp.arange(w, dtype=dtype)[None, :]
         parts = [_alpha(c, pu, pv) for c in cands]
-        zs = [c[2] for c in cands]
+        zs = keys = [c[2] for c in cands]
     alphas = [p[0] for p in parts]
     qs = [1.0 - a for a in alphas]
     n = len(cands)
@@ -346,9 +350,9 @@ def _forward(layers, window, row0=0, exact=False):
         trans = jnp.ones_like(alphas[j])
         for k in range(n):
             if k != j:
-                trans = trans * jnp.where(_in_front(zs, k, j), qs[k], 1.0)
+                trans = trans * jnp.where(_in_front(keys, k, j), qs[k], 1.0)
         weights.append(alphas[j] * trans)
-    return cands, parts, qs, zs, weights
+    return cands, parts, qs, zs, weights, keys
 
 
 def composite(layers: Sequence[Float[Array, "l H W"]], window: int = 3) -> Render:
@@ -370,7 +374,7 @@ def _composite(window, layers):
     return Render(rgb=jnp.moveaxis(rgb, 0, -1), depth=depth, alpha=alpha)
 
 
-def _blend(cands, _parts, _qs, zs, weights):
+def _blend(cands, _parts, _qs, zs, weights, _keys):
     """Colour ``(3, h, w)``, depth and accumulated opacity from the candidates' blending weights."""
     rgb = jnp.stack([sum(wj * c[ch - 3] for wj, c in zip(weights, cands)) for ch in range(3)])
     return rgb, sum(wj * zj for wj, zj in zip(weights, zs)), sum(weights)
@@ -451,7 +455,7 @@ def _overlap_add(per_band: Array, band: int, halo: int, axis: int) -> Array:
 def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
     """Gradients of one band's slots (a list of A images ``(l, band + 2r, W)``) from the band's
     image cotangents (``exact``: own-pose attributes, see :func:`_forward`)."""
-    cands, parts, qs, zs, weights = _forward(layers, window, row0, exact)
+    cands, parts, qs, zs, weights, keys = _forward(layers, window, row0, exact)
     n = len(cands)
     parts = [list(p) for p in jax.lax.optimization_barrier([jnp.stack(p) for p in parts])]
     # s_j: d loss / d weight_j; ws_j = weight_j s_j.
@@ -466,12 +470,13 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
     else:
         weights, ss, qs, zs = (list(x) for x in jax.lax.optimization_barrier(
             (jnp.stack(weights), jnp.stack(ss), jnp.stack(qs), jnp.stack(zs))))
+        keys = zs
     ws = [wj * sj for wj, sj in zip(weights, ss)]
     g_alphas = []
     for j in range(n):
         alpha = parts[j][0]
         # d loss / d alpha_j = T_j s_j - (sum of ws_m over candidates m behind j) / (1 - alpha_j)
-        behind = sum(jnp.where(_in_front(zs, j, m), ws[m], 0.0) for m in range(n) if m != j)
+        behind = sum(jnp.where(_in_front(keys, j, m), ws[m], 0.0) for m in range(n) if m != j)
         trans = weights[j] / jnp.maximum(alpha, 1e-30)
         g_alpha = trans * ss[j] - behind / qs[j]
         # exact: the clamp to MAX_ALPHA is differentiated with the attributes (project_own)
@@ -485,7 +490,7 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
         if exact:
             grads.append(jnp.stack([weights[j] * g_depth, g_alphas[j], *colour]))
             a = len(layers)
-            rows.append([0, 1 + cls[j % len(cls)], a - 3, a - 2, a - 1])
+            rows.append([0, 2 + cls[j % len(cls)], a - 3, a - 2, a - 1])
             continue
         alpha, raw, gauss, du, dv = parts[j]
         u, v, z, ca, cb, cc, opacity = cands[j][:7]
@@ -515,7 +520,6 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
     k = window
     offsets = window_offsets(window)
     no = len(offsets)
-    shape = layers[0].shape[1:]
 
     def slots(a, l):
         terms = [
@@ -524,7 +528,7 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
             for i, attr in enumerate(rows[j])
             if attr == a
         ]
-        return sum(terms) if terms else jnp.zeros(shape, layers[0].dtype)
+        return sum(terms) if terms else jnp.zeros_like(layers[a][l])
 
     return [jnp.stack([slots(a, l) for l in range(layers[0].shape[0])]) for a in range(len(layers))]
 
@@ -537,9 +541,16 @@ def render_own(g: PixelGaussians, pose: lie.SE3, intr: Intrinsics, *, window: in
 
     Without ``view_pose`` the frame is seen at its own pose, where every Gaussian projects exactly
     onto its pixel: the image does not depend on ``pose`` (its gradient is zero) and compositing
-    reads each candidate's opacity from per-Gaussian images (:func:`project_own`).
+    reads each candidate's opacity from per-Gaussian images (:func:`project_own`). There a pixel's
+    candidates are composited in the order of their *measured* depths ``D`` (the order the sensor
+    saw), not of ``|D + offset|``: an offset moves a Gaussian along its own pixel's ray, which in
+    this view changes its footprint and depth, not which window neighbour it hides. (Ordered by
+    ``|D + offset|``, offsets of a few millimetres reorder neighbours on a flat surface, where
+    measured depths are equal or nearly so, from one Adam step to the next, and the colour fit
+    chatters: on 10 TUM frames at 320x240, 42.6 dB against 48.8 dB with this rule.)
     A ``view_pose`` may differ slightly from ``pose``: the candidate windows stay at the source
-    pixels, the projected centres move, so gradients with respect to either pose are exact.
+    pixels, the projected centres move, so gradients with respect to either pose are exact; the
+    candidates are then composited in view-depth order, as in any other view.
     The backward pass runs in row bands of about :data:`BAND_PIXELS` pixels, the projection's included.
     """
     exact = view_pose is None

@@ -46,9 +46,11 @@ def _gaussians_in_view(gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, i
 
 
 def render(
-    gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, *, window: int = 3
+    gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, *, window: int = 3, key=None
 ) -> Render:
-    """Render frames ``gs`` (stacked ``(f, h, w)``) at ``poses`` into ``view_pose``, densely."""
+    """Render frames ``gs`` (stacked ``(f, h, w)``) at ``poses`` into ``view_pose``, densely.
+    ``key`` (``(f, h, w)``): the compositing order, if not the depth in the view (a frame in its
+    own view at its own pose is composited in the order of its measured depths ``gs.depth``)."""
     uv, z, conic, opacity, rgb = _gaussians_in_view(gs, poses, view_pose, intr)
     h, w = intr.height, intr.width
     r = window // 2
@@ -59,7 +61,7 @@ def render(
     d = p - uv[None]  # (P, n, 2)
     power = 0.5 * jnp.einsum("pni,nij,pnj->pn", d, conic, d)
     alpha = jnp.where(in_window, jnp.minimum(opacity[None] * jnp.exp(-power), MAX_ALPHA), 0.0)
-    order = jnp.argsort(z, stable=True)  # depth order, ties by index; the same for every pixel
+    order = jnp.argsort(z if key is None else key.reshape(-1), stable=True)  # ties by index; the same for every pixel
     a = alpha[:, order]
     trans = jnp.cumprod(jnp.concatenate([jnp.ones_like(a[:, :1]), 1.0 - a[:, :-1]], axis=1), axis=1)
     wgt = a * trans

@@ -1,5 +1,7 @@
 """The fast renderer against the dense reference renderer (forward and vector-Jacobian products)."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -73,10 +75,19 @@ def test_any_view_matches_reference():
 
 @pytest.mark.parametrize("window", [3, 5])
 def test_own_view_matches_reference(window):
+    """At its own pose a frame is composited in the order of its measured depths; offsets large
+    enough to reverse that order between neighbours show the rule is the reference's ``key``."""
     g, pose = _scene(1, 3), _pose(4)
+    g = dataclasses.replace(g, offset=5.0 * g.offset)  # +-0.5 m
+    z, d = np.asarray(g.z[0]), np.asarray(g.depth[0])
+    flipped = np.sum((z[:, 1:] < z[:, :-1]) != (d[:, 1:] < d[:, :-1]))
+    assert flipped > 5  # horizontal neighbours whose depth order the offsets reverse
     g1 = jax.tree.map(lambda x: x[0], g)
     pose1 = jax.tree.map(lambda x: x[None], pose)
-    _close(splat.render_own(g1, pose, _intr(), window=window), splat_ref.render(g, pose1, pose, _intr(), window=window))
+    fast = splat.render_own(g1, pose, _intr(), window=window)
+    _close(fast, splat_ref.render(g, pose1, pose, _intr(), window=window, key=g.depth))
+    in_z_order = splat_ref.render(g, pose1, pose, _intr(), window=window)
+    assert float(jnp.abs(fast.rgb - in_z_order.rgb).max()) > 1e-3
 
 
 @pytest.mark.parametrize("band", [None, 3])
@@ -144,13 +155,15 @@ def test_own_view_at_own_pose_vjp_matches_reference(window, band, monkeypatch):
     g1 = jax.tree.map(lambda x: x[0], g)
     intr = _intr()
     fast = lambda g1: splat.render_own(g1, pose, intr, window=window)  # noqa: E731
-    ref = lambda g1: splat_ref.render(jax.tree.map(lambda x: x[None], g1), jax.tree.map(lambda x: x[None], pose), pose, intr, window=window)  # noqa: E731
+    ref = lambda g1: splat_ref.render(  # noqa: E731
+        jax.tree.map(lambda x: x[None], g1), jax.tree.map(lambda x: x[None], pose), pose, intr, window=window, key=g1.depth[None]
+    )
     out, vf = jax.vjp(fast, g1)
     ref_out, vr = jax.vjp(ref, g1)
     _close(out, ref_out)
     ct = _cotangent(out, 20)
     gf, gr = vf(ct), vr(ct)
-    assert float(jnp.abs(gr[0].offset).max()) > 1e-3  # offsets matter (depth order and footprint)
+    assert float(jnp.abs(gr[0].offset).max()) > 1e-3  # offsets matter (footprint and rendered depth)
     _close(gf, gr, tol=1e-8)
 
 
