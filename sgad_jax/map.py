@@ -108,7 +108,8 @@ def render_into(
 ) -> splat.Render:
     """The frame's Gaussians in a view: the exact own-view path, or one binned layer elsewhere.
     ``own_at_pose``: the own view is seen at ``pose`` itself (``view_pose`` ignored there; the
-    faster own-pose renderer, whose image does not depend on the pose)."""
+    faster own-pose renderer, whose image does not depend on the pose and which composites in the
+    order of the measured depths, see :func:`sgad_jax.splat.render_own`)."""
 
     def own_view(_):
         return splat.render_own(g, pose, intr, window=window, view_pose=None if own_at_pose else view_pose)
