@@ -15,7 +15,7 @@ compile time:
 
 Usage::
 
-    python benchmarks/bench_splat.py [--data ../shared/data/tum_fr1_xyz] [--repeats 5]
+    python benchmarks/bench_splat.py [--data ../shared/data/tum_fr1_xyz] [--repeats 5] [--keep-freed-memory]
 
 Prints one JSON object with ``own_640x480_fwd_ms``, ``own_640x480_fwd_bwd_ms``,
 ``own_320x240_fwd_ms``, ``own_320x240_fwd_bwd_ms``, ``neighbours2_640x480_fwd_ms``,
@@ -51,12 +51,36 @@ def _timed(fn, *args, repeats: int) -> tuple[float, float]:
     return first, float(np.median(times))
 
 
+def keep_freed_memory() -> bool:
+    """Make glibc's ``malloc`` keep what the process frees (one arena, no ``mmap`` for large blocks,
+    no trimming); True if it applied. The same as starting with ``MALLOC_ARENA_MAX=1
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=2147483647``.
+
+    XLA:CPU allocates a call's scratch afresh (the three-frame render gradient: 88 MB), and glibc
+    maps such blocks from the system and unmaps them when freed, so each call touches its scratch
+    as new pages (22-29k page faults per call). Kept, the neighbour path's gradient ran 161-172
+    against 175-218 ms (alternating calls in one process), but tracking and ``map_frame`` did not
+    get faster (one arena for all threads), so ``sgad-jax run`` leaves malloc as it is.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c")).mallopt
+    except (OSError, TypeError, AttributeError):  # not glibc
+        return False
+    m_trim_threshold, m_mmap_max, m_arena_max = -1, -4, -8  # <malloc.h>
+    return all(mallopt(opt, value) == 1 for opt, value in ((m_arena_max, 1), (m_mmap_max, 0), (m_trim_threshold, 2**31 - 1)))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", default=os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz"))
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--iterations", type=int, default=100)
+    p.add_argument("--keep-freed-memory", action="store_true", help="tune glibc malloc to keep freed memory (see keep_freed_memory)")
     args = p.parse_args(argv)
+    kept = keep_freed_memory() if args.keep_freed_memory else False  # before JAX starts its threads
 
     import jax
     import jax.numpy as jnp
@@ -68,7 +92,10 @@ def main(argv: list[str] | None = None) -> int:
     from sgad_jax.types import make_frame
 
     path = args.data if os.path.isdir(args.data) else ""
-    out: dict = {"data": path or "synthetic", "repeats": args.repeats, "iterations": args.iterations, "device": jax.devices()[0].device_kind}
+    out: dict = {
+        "data": path or "synthetic", "repeats": args.repeats, "iterations": args.iterations, "device": jax.devices()[0].device_kind,
+        "keep_freed_memory": kept,
+    }
     compile_s: dict[str, float] = {}
 
     def load(downscale: int):

@@ -80,6 +80,7 @@ class MapConfig:
     weight_ssim: float = 0.2
     weight_depth: float = 1.0
     learn_offset: bool = True  # False: Gaussians stay at the measured depth (the paper's ablation)
+    offset_at_invalid: bool = False  # True: also learn the offsets of Gaussians where depth was not measured (see README)
     render_init: bool = False  # refine the pose guess by rendering the previous frame's Gaussians
     render_init_iterations: int = 30
     psnr_protocol: str = "whole"  # whole | valid (valid-depth pixels) | zeroed (invalid pixels zeroed)

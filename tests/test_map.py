@@ -73,6 +73,38 @@ def test_offsets_stay_fixed_in_the_ablation_and_do_not_spoil_the_own_view_fit(ro
     assert psnr[True] > psnr[False] - 1.0, psnr
 
 
+@pytest.mark.parametrize("at_invalid", [True, False])
+def test_offsets_without_measured_depth(room, at_invalid):
+    """``offset_at_invalid=False`` keeps the offsets of Gaussians at pixels without measured depth
+    (here a block whose depth was inpainted) at zero, and learns the others."""
+    intr, frames, poses = room
+    hole = np.zeros(frames[1].depth.shape, bool)
+    hole[10:20, 15:30] = True
+    depth = np.where(hole, 0.0, np.asarray(frames[1].depth))
+    own = make_frame(frames[1].rgb, depth, np.asarray(frames[1].depth))
+    views = _views([frames[0], own, frames[2]], poses, [1, 0, 2])
+    cfg = MapConfig(iterations=20, offset_at_invalid=at_invalid)
+    g, _ = jax.jit(mapping.map_frame, static_argnums=0)(cfg, mapping.init_gaussians(own, intr), poses[1], views, intr)
+    moved = np.abs(np.asarray(g.offset)) > 0
+    assert moved[~hole].mean() > 0.5
+    assert moved[hole].any() == at_invalid
+
+
+def test_missing_neighbours_iterations_change_nothing(room):
+    """A frame without neighbours (the first of a run) ends as if mapped on its own view alone for
+    its own-view share of the iterations."""
+    intr, frames, poses = room
+    g0 = mapping.init_gaussians(frames[1], intr)
+    cfg = MapConfig(iterations=12)
+    views = dataclasses.replace(_views(frames, poses, [1, 0, 2]), present=jnp.asarray([True, False, False]))
+    g, info = jax.jit(mapping.map_frame, static_argnums=0)(cfg, g0, poses[1], views, intr)
+    own = int(np.sum(mapping.view_schedule(cfg, 3) == 0))
+    assert 0 < own < cfg.iterations and set(np.asarray(info.view).tolist()) == {0, -1}
+    ref, _ = jax.jit(mapping.map_frame, static_argnums=0)(MapConfig(iterations=own), g0, poses[1], _views(frames, poses, [1]), intr)
+    for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(ref)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
+
+
 def test_map_frame_vmaps_over_frames(room):
     intr, frames, poses = room
     cfg = MapConfig(iterations=4)
