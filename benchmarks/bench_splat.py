@@ -59,8 +59,8 @@ def keep_freed_memory() -> bool:
     XLA:CPU allocates a call's scratch afresh (the three-frame render gradient: 88 MB), and glibc
     maps such blocks from the system and unmaps them when freed, so each call touches its scratch
     as new pages (22-29k page faults per call). Kept, the neighbour path's gradient ran 161-172
-    against 175-218 ms (alternating calls in one process), but tracking and ``map_frame`` did not
-    get faster (one arena for all threads), so ``sgad-jax run`` leaves malloc as it is.
+    against 216-217 ms (alternating calls in one process), but ``map_frame`` and tracking got
+    slower (one arena for all threads), so ``sgad-jax run`` leaves malloc as it is (README).
     """
     import ctypes
     import ctypes.util

@@ -181,14 +181,13 @@ def map_frame(
     """
     schedule = jnp.asarray(view_schedule(cfg, views.present.shape[0]))
     opt = optimizer(cfg)
-    # A missing neighbour's iterations render the own view through the other-view path (so that
-    # which path an iteration takes depends on the schedule alone: under vmap a data-dependent
-    # branch would run both paths at every iteration) and are then discarded: that path composites
-    # in view-depth order, the own-pose path in measured-depth order, and with offsets learned the
-    # two disagree, so fitting both made the first frame of a run chatter (TUM frame 0 at 640x480:
-    # 68.9 dB with offsets learned, 107.8 dB fixed).
+    # A missing neighbour's iterations run like the others (which path an iteration takes depends
+    # on the schedule alone: under vmap a data-dependent branch would run both paths at every
+    # iteration) and their update is discarded. (They used to fit the own view through the
+    # other-view path, which composites in view-depth order while the own-pose path composites in
+    # measured-depth order; with offsets learned the two disagree and the first frame of a run
+    # chattered: TUM frame 0 at 640x480, 68.9 dB with offsets learned, 107.8 dB fixed.)
     present = views.present
-    views = jax.tree.map(lambda x: jnp.where(present.reshape((-1,) + (1,) * (x.ndim - 1)), x, x[:1]), views)
     targets = jax.vmap(losses.ssim_target)(views.rgb)  # fixed: computed once, not at every step
 
     def step(carry, k):
