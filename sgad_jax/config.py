@@ -63,6 +63,9 @@ class TrackConfig:
     # after frame 220 of redkitchen; TUM pairs two colour images with one depth image) keeps the
     # previous frame's pose instead of being tracked again from a moved guess.
     hold_repeated_depth: bool = True
+    # Residual weight (z / 1 m)^-p of a point at camera depth z (0: unweighted, as the paper);
+    # see README, "Depth weighting".
+    depth_weight_power: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -78,8 +78,25 @@ def match(cfg: TrackConfig, cand: Candidates, q: Float[Array, "3 m"]) -> tuple[F
     return e_b, cov_b, jnp.any(ok, axis=0)
 
 
+#: Points nearer than this (metres) get the residual weight of a point at this depth.
+_WEIGHT_NEAR = 0.3
+
+
+def depth_weights(cfg: TrackConfig, cloud: PointCloud) -> Float[Array, " m"]:
+    """Residual weight of each point, ``(z / 1 m)^-p`` for its camera-frame depth ``z`` and
+    ``p = cfg.depth_weight_power`` (0: all 1, the paper's unweighted cost).
+
+    Depth noise of RGB-D sensors grows with depth (Kinect v1: its standard deviation grows as
+    z^2), while the scale-normalised covariances of the paper give every point the same weight
+    whatever its depth; ``1 / z`` gives near, precise points more say (see README, "Depth
+    weighting").
+    """
+    return jnp.maximum(cloud.points[2], _WEIGHT_NEAR) ** (-cfg.depth_weight_power)
+
+
 def cost(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T_wc: lie.SE3) -> Float[Array, ""]:
-    """The GICP cost ``sum e^T (C_b + R C_a R^T)^-1 e`` of ``cloud`` (camera frame) at ``T_wc``.
+    """The GICP cost ``sum w e^T (C_b + R C_a R^T)^-1 e`` of ``cloud`` (camera frame) at ``T_wc``,
+    ``w`` from :func:`depth_weights`.
 
     Correspondences are chosen at ``T_wc`` and held constant under differentiation.
     """
@@ -87,7 +104,8 @@ def cost(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T_wc: lie.SE3) 
     q = lie.transform_points(R, t, cloud.points)
     cand = gather_candidates(geom, jax.lax.stop_gradient(q), cloud.valid)
     e, cov_b, found = match(cfg, cand, q)
-    return jnp.sum(jnp.where(found, gicp.mahalanobis(e, gicp.information(R, cloud.covs, cov_b)), 0.0))
+    cost_b = depth_weights(cfg, cloud) * gicp.mahalanobis(e, gicp.information(R, cloud.covs, cov_b))
+    return jnp.sum(jnp.where(found, cost_b, 0.0))
 
 
 # Candidates looked up at pose T_ref serve while the pose stays within this many voxels of T_ref.
@@ -103,13 +121,14 @@ def _moved(T: lie.SE3, T_ref: lie.SE3, reach: float) -> Float[Array, ""]:
 def solve(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3) -> tuple[lie.SE3, TrackInfo]:
     """Gauss-Newton GICP from ``T0`` (not differentiable: use :func:`track` for gradients)."""
     reach = cfg.max_depth if cfg.max_depth > 0 else 4.0
+    weight = depth_weights(cfg, cloud)
 
     def step(cand, T):
         R, t = lie.rotation_components(T)
         q = lie.transform_points(R, t, cloud.points)
         e, cov_b, found = match(cfg, cand, q)
         M = gicp.information(R, cloud.covs, cov_b)
-        H, g, c = gicp.linearise(q, e, M, found.astype(jnp.float32))
+        H, g, c = gicp.linearise(q, e, M, found.astype(jnp.float32) * weight)
         n_in = jnp.sum(found).astype(jnp.int32)
         enough = n_in >= 6
         H = H + (1e-6 * jnp.trace(H) / 6.0 + jnp.where(enough, 0.0, 1.0)) * jnp.eye(6)

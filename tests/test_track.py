@@ -106,6 +106,29 @@ def test_implicit_gradient_of_tracked_pose(scene):
     np.testing.assert_allclose(J, -R, atol=5e-3)
 
 
+def test_depth_weighted_cost(scene):
+    """The weighted cost is the unweighted cost with each point's term scaled by (z / 1 m)^-p:
+    summed over narrow depth bands of the frame's points (each band's unweighted cost, from the
+    valid mask, times its depth^-p), for p = 1 and 2."""
+    ds, geom, cloud0, T0 = scene
+    z = np.asarray(cloud0.points[2])
+    valid = np.asarray(cloud0.valid)
+    T = lie.exp(jnp.array([0.003, -0.002, 0.001, 0.001, 0.0, -0.001])) @ T0
+    unweighted = dataclasses.replace(CFG, depth_weight_power=0.0)
+    cost_jit = jax.jit(cost, static_argnums=0)
+    edges = np.arange(z[valid].min(), z[valid].max() + 0.02, 0.01)
+    bands = [(lo + hi) / 2 for lo, hi in zip(edges[:-1], edges[1:])]
+    parts = [
+        float(cost_jit(unweighted, geom, dataclasses.replace(cloud0, valid=jnp.asarray(valid & (z >= lo) & (z < hi))), T))
+        for lo, hi in zip(edges[:-1], edges[1:])
+    ]
+    for p in (1.0, 2.0):
+        weighted = cost(dataclasses.replace(CFG, depth_weight_power=p), geom, cloud0, T)
+        expected = sum(c * max(zb, 0.3) ** -p for c, zb in zip(parts, bands))
+        np.testing.assert_allclose(float(weighted), expected, rtol=0.01)
+        assert abs(float(weighted) - sum(parts)) > 0.05 * sum(parts)  # the weights matter here
+
+
 def test_track_step_does_not_recompile(scene):
     ds = scene[0]
     traced = chex.assert_max_traces(slam.track_step, n=1)
