@@ -125,16 +125,16 @@ class PixelGaussians:
 class GeometrySet:
     """The global set T of geometry Gaussians, one per occupied voxel, fixed capacity.
 
-    ``keys[:count]`` are the packed voxel keys of the active entries in increasing order (the rest
-    hold the sentinel ``KEY_EMPTY``, larger than any real key, so that ``searchsorted`` works on the
-    whole array) and ``slots[i]`` says where the data of the entry with key ``keys[i]`` is. The data
-    (point, covariance, normal) is stored in insertion order, slots ``[0, count)``, so that an
-    insertion moves only the two index arrays. Covariances are scale-normalised (middle eigenvalue 1)
-    and stored as their six unique entries ``xx yy zz xy xz yz``.
+    The data (point, covariance, normal) of the ``count`` active entries is stored in insertion
+    order, slots ``[0, count)``. A hash table says where each voxel's data is:
+    ``bucket_keys[i, j]`` is a packed voxel key (``KEY_EMPTY`` if free; buckets fill from
+    ``j = 0``) and ``bucket_slots[i, j]`` its data slot (see :mod:`sgad_jax.geometry`).
+    Covariances are scale-normalised (middle eigenvalue 1) and stored as their six unique entries
+    ``xx yy zz xy xz yz``.
     """
 
-    keys: Int[Array, " n"]
-    slots: Int[Array, " n"]
+    bucket_keys: Int[Array, "nb 4"]
+    bucket_slots: Int[Array, "nb 4"]
     points: Float[Array, "3 n"]
     covs: Float[Array, "6 n"]
     normals: Float[Array, "3 n"]
@@ -144,7 +144,7 @@ class GeometrySet:
 
     @property
     def capacity(self) -> int:
-        return self.keys.shape[-1]
+        return self.points.shape[-1]
 
     @property
     def active(self) -> Bool[Array, " n"]:
@@ -158,9 +158,11 @@ def empty_geometry(capacity: int, voxel_size: float, origin=(0.0, 0.0, 0.0)) -> 
     """An empty geometry set; voxel keys cover 1024 voxels per axis centred on ``origin``."""
     if capacity <= 0 or voxel_size <= 0:
         raise ValueError(f"geometry set needs capacity > 0 and voxel_size > 0, got {capacity}, {voxel_size}")
+    buckets = 1 << max(1, (2 * capacity - 1).bit_length())
     return GeometrySet(
-        keys=jnp.full((capacity,), KEY_EMPTY, jnp.int32),
-        slots=jnp.zeros((capacity,), jnp.int32),
+        # Buckets of 4 entries, at least 8 entries per data slot, a power of two of buckets.
+        bucket_keys=jnp.full((buckets, 4), KEY_EMPTY, jnp.int32),
+        bucket_slots=jnp.zeros((buckets, 4), jnp.int32),
         points=jnp.zeros((3, capacity), jnp.float32),
         covs=jnp.zeros((6, capacity), jnp.float32),
         normals=jnp.zeros((3, capacity), jnp.float32),

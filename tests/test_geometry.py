@@ -1,5 +1,7 @@
 """The geometry set T: insertion invariants and candidate lookup against a brute-force oracle."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -25,13 +27,20 @@ def _voxels(points):
 
 
 def _check_invariants(g):
+    """Every stored key once, at its home bucket or the next, buckets filled from the left; the
+    slots are exactly [0, count), and each key is the voxel of its slot's point."""
     n = int(g.count)
-    keys = np.asarray(g.keys)
-    assert np.all(np.diff(keys[:n]) > 0) and np.all(keys[n:] == KEY_EMPTY)
-    slots = np.asarray(g.slots[:n])
-    assert sorted(slots) == list(range(n))
-    k, _ = geometry.pack(geometry.voxel_coords(g, g.points[:, slots]))
-    np.testing.assert_array_equal(np.asarray(k), keys[:n])
+    keys, slots = np.asarray(g.bucket_keys), np.asarray(g.bucket_slots)
+    nb = keys.shape[0]
+    used = keys != KEY_EMPTY
+    assert used.sum() == n and len(set(keys[used].tolist())) == n
+    assert np.all(np.diff(used.astype(int), axis=1) <= 0)  # no free entry before a used one
+    assert sorted(slots[used].tolist()) == list(range(n))
+    home = np.asarray(geometry._home(g, jnp.asarray(keys[used])))
+    bucket = np.nonzero(used)[0]
+    assert np.all((bucket == home) | (bucket == (home + 1) % nb))
+    k, _ = geometry.pack(geometry.voxel_coords(g, g.points[:, slots[used]]))
+    np.testing.assert_array_equal(np.asarray(k), keys[used])
 
 
 def test_insert_keeps_one_gaussian_per_voxel():
@@ -91,13 +100,21 @@ def test_occupied():
     np.testing.assert_array_equal(np.asarray(geometry.occupied(g, probe)), [True, False, False])
 
 
-def test_running_count_matches_numpy_cumsum():
-    """The matrix-product running count equals numpy's cumulative sum, for lengths below, at and
-    above one block, not multiples of it, and up to 2^18 (three levels of blocks)."""
-    rng = np.random.default_rng(7)
-    for n in (1, 5, 64, 65, 4096, 5000, 1 << 18):
-        flags = rng.random(n) < rng.uniform(0.01, 0.99)
-        got = np.asarray(jax.jit(geometry.running_count)(jnp.asarray(flags)))
-        np.testing.assert_array_equal(got, np.cumsum(flags))
-    dense = np.ones(1 << 18, bool)  # the largest counts: exact in float32 below 2^24
-    np.testing.assert_array_equal(np.asarray(geometry.running_count(jnp.asarray(dense))), np.arange(1, (1 << 18) + 1))
+def test_full_buckets_spill_then_overflow():
+    """A table of 2 buckets (8 entries) for 20 new voxels: keys go to their home bucket, then the
+    next one; what fits nowhere is dropped and counted, the data of the rest is intact and found."""
+    g = empty_geometry(64, VOXEL)
+    g = dataclasses.replace(g, bucket_keys=g.bucket_keys[:2], bucket_slots=g.bucket_slots[:2])
+    pts = np.stack([np.arange(20) * VOXEL + VOXEL / 2, np.zeros(20), np.zeros(20)]).astype(np.float32)
+    g, info = geometry.insert(g, _cloud(pts))
+    assert int(info.inserted) == 8 and int(info.overflow) == 12 and int(g.count) == 8
+    _check_invariants(g)
+    found = np.asarray(geometry.occupied(g, jnp.asarray(pts)))
+    assert found.sum() == 8
+    # The kept points are the ones whose voxels are found, stored at their slots.
+    kept = {tuple(np.round(p, 6)) for p in np.asarray(g.points[:, :8]).T}
+    assert kept == {tuple(np.round(p, 6)) for p in pts[:, found].T}
+    # Inserting the same points again changes nothing.
+    g2, info = geometry.insert(g, _cloud(pts[:, found]))
+    assert int(info.inserted) == 0
+    np.testing.assert_array_equal(np.asarray(g2.bucket_keys), np.asarray(g.bucket_keys))
