@@ -7,7 +7,7 @@ implicit function theorem (``jax.lax.custom_root``), not from unrolling the solv
 Speed on XLA:CPU comes from splitting the correspondence search in two: the candidates of every
 point (the geometry Gaussians of the 2x2x2 voxel block around it) are looked up in T once and
 cached as dense ``(c, 8, m)`` arrays; each Gauss-Newton iteration then picks the best candidate with
-plain arithmetic. The lookup is repeated only when the pose has moved by more than a quarter voxel
+plain arithmetic and gathers its covariance. The lookup is repeated only when the pose has moved by more than a quarter voxel
 since the last one.
 """
 
