@@ -52,5 +52,8 @@ def unflatten(prefix: str, arrays: dict[str, np.ndarray], like):
     got = [arrays[f"{prefix}/{i:03d}"] for i in range(len(leaves))]
     for g, ref in zip(got, leaves):
         if np.shape(g) != np.shape(ref):
-            raise ConfigError(f"checkpoint {prefix} does not fit this run (shape {np.shape(g)} vs {np.shape(ref)})")
+            raise ConfigError(
+                f"checkpoint {prefix} does not fit this run (shape {np.shape(g)} vs {np.shape(ref)}): made with other settings"
+                " or by another sgad_jax version; rerun without --resume or with a new --out"
+            )
     return jax.tree.unflatten(treedef, [jax.numpy.asarray(g, dtype=np.asarray(r).dtype) for g, r in zip(got, leaves)])
