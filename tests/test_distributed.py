@@ -219,3 +219,18 @@ def test_run_with_rendering_init(tmp_path):
     result = run(cfg, tmp_path / "ri", progress=False)
     assert result.metrics["frames"] == 6 and result.metrics["ate_rmse_cm"] < 0.05
     assert result.metrics["mapped_frames"] == 6
+
+
+def test_checkpoint_of_an_older_geometry_layout_is_refused():
+    """A geometry set saved before the hash table (a key array of shape (capacity,)) does not
+    load into today's layout: a clear error, not a wrongly shaped state."""
+    from sgad_jax import checkpoint
+    from sgad_jax.config import ConfigError
+    from sgad_jax.types import empty_geometry
+
+    geom = empty_geometry(64, 0.02)
+    arrays = checkpoint.flatten("state", geom)
+    assert checkpoint.unflatten("state", arrays, geom).bucket_keys.shape == geom.bucket_keys.shape
+    arrays["state/000"] = np.zeros(64, np.int32)  # the old sorted-key array
+    with pytest.raises(ConfigError, match="another sgad_jax version"):
+        checkpoint.unflatten("state", arrays, geom)
