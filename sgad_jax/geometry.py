@@ -51,10 +51,21 @@ def pack(c: list[Int[Array, "*m"]]) -> tuple[Int[Array, "*m"], Bool[Array, "*m"]
     return jnp.where(inside, key, KEY_EMPTY), inside
 
 
-def _home(geom: GeometrySet, key: Int[Array, "*m"]) -> Int[Array, "*m"]:
-    """Home bucket of each key: Fibonacci hashing (the key times 2^32 / golden ratio, top bits)."""
+#: Fibonacci hashing: a key times 2^32 / golden ratio (mod 2^32), a bijection of 32-bit words whose
+#: top bits are the home bucket; its inverse multiplier recovers the key.
+_GOLDEN, _GOLDEN_INV = 2654435769, pow(2654435769, -1, 1 << 32)
+#: The hash of no key below 2^30 (keys pack 3 x 10 bits), so it can mark "no new key".
+_NO_HASH = 0xFFFFFFFF
+
+
+def _bucket(geom: GeometrySet, h: Int[Array, "*m"]) -> Int[Array, "*m"]:
     bits = geom.bucket_keys.shape[0].bit_length() - 1  # a power of two of buckets, at least 2
-    return ((key.astype(jnp.uint32) * jnp.uint32(2654435769)) >> (32 - bits)).astype(jnp.int32)
+    return (h >> (32 - bits)).astype(jnp.int32)
+
+
+def _home(geom: GeometrySet, key: Int[Array, "*m"]) -> Int[Array, "*m"]:
+    """Home bucket of each key."""
+    return _bucket(geom, key.astype(jnp.uint32) * jnp.uint32(_GOLDEN))
 
 
 def _lookup(geom: GeometrySet, key: Int[Array, "*m"]) -> tuple[Int[Array, "*m"], Bool[Array, "*m"]]:
@@ -86,9 +97,10 @@ def occupied(geom: GeometrySet, p_w: Float[Array, "3 m"]) -> Bool[Array, " m"]:
 def insert(geom: GeometrySet, cloud_w: PointCloud) -> tuple[GeometrySet, InsertInfo]:
     """Add the points of ``cloud_w`` (world frame) whose voxels are empty; one per voxel.
 
-    Fixed shapes throughout, and nothing proportional to the capacity: the new points are sorted
-    by (home bucket, key) (a stable sort, so the lowest point index of a voxel comes first: the
-    first point to reach a voxel owns it), each distinct new key is ranked within its home bucket
+    Fixed shapes throughout, and nothing proportional to the capacity: the new points' key hashes
+    are sorted (one 32-bit word, so grouped by home bucket; a sort carrying the point indices
+    along ran 4x slower on XLA:CPU), the lowest point index of each voxel is found by a
+    scatter-min (the first point to reach a voxel owns it), each distinct new key is ranked within its home bucket
     and placed in the bucket's next free entries, or in the next bucket's when the home bucket
     is full; its data is appended at slots ``[count, count + inserted)``. When capacity runs out,
     or both buckets of a key are full, the remaining points are dropped and counted in
@@ -99,9 +111,13 @@ def insert(geom: GeometrySet, cloud_w: PointCloud) -> tuple[GeometrySet, InsertI
     m = key.shape[0]
     nb = geom.bucket_keys.shape[0]
     end = nb * BUCKET  # an entry index past the table: scatters there are dropped
-    b = jnp.where(new, _home(geom, key), nb)  # points that add nothing sort last
-    b, key, src = jax.lax.sort((b, jnp.where(new, key, KEY_EMPTY), jnp.arange(m, dtype=jnp.int32)), num_keys=2, is_stable=True)
-    first = (b < nb) & jnp.concatenate([jnp.ones((1,), bool), key[1:] != key[:-1]])
+    h = jnp.where(new, key.astype(jnp.uint32) * jnp.uint32(_GOLDEN), jnp.uint32(_NO_HASH))
+    hs = jnp.sort(h)  # points that add nothing sort last
+    b = _bucket(geom, hs)
+    key = (hs * jnp.uint32(_GOLDEN_INV)).astype(jnp.int32)
+    first = (hs != jnp.uint32(_NO_HASH)) & jnp.concatenate([jnp.ones((1,), bool), hs[1:] != hs[:-1]])
+    at = jnp.where(new, jnp.searchsorted(hs, h, side="left", method="scan"), m)  # the first position of its key
+    src = jnp.full((m,), m - 1, jnp.int32).at[at].min(jnp.arange(m, dtype=jnp.int32), mode="drop")
     before = jnp.cumsum(first) - first  # distinct new keys before this position
     take = first & (before < geom.capacity - geom.count)
     # Rank among the new keys of its home bucket: distinct keys since the bucket's first position.
