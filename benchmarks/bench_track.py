@@ -63,16 +63,20 @@ def _small_gicp_track(depths, repeated, intr, T0, stride, k, voxel, max_corr, th
     return np.stack(poses), np.asarray(times)
 
 
-def _median_ms(f, *args, repeats=20) -> float:
+def _median_ms(f, *args, repeats=20, donated=False) -> float:
+    """Median time of ``f(*args)`` after a warm-up call. ``donated``: ``f`` updates its first
+    argument in place (as the tracking step does), so each call gets a fresh copy of it, made
+    outside the timed region."""
     import jax
+    import jax.numpy as jnp
 
-    jax.block_until_ready(f(*args))
     times = []
-    for _ in range(repeats):
+    for _ in range(repeats + 1):
+        call = (jax.block_until_ready(jax.tree.map(jnp.copy, args[0])), *args[1:]) if donated else args
         t0 = time.perf_counter()
-        jax.block_until_ready(f(*args))
+        jax.block_until_ready(f(*call))
         times.append(time.perf_counter() - t0)
-    return 1000 * float(np.median(times))
+    return 1000 * float(np.median(times[1:]))
 
 
 def _stage_times(tcfg, geom, depth, intr, T) -> dict:
@@ -91,23 +95,8 @@ def _stage_times(tcfg, geom, depth, intr, T) -> dict:
         "frame_points": _median_ms(jax.jit(gicp.frame_points, static_argnums=0), tcfg, depth, intr),
         "candidate_lookup": _median_ms(jax.jit(gather_candidates), geom, cloud_w.points, cloud_w.valid),
         "lookup_and_one_iteration": _median_ms(jax.jit(solve, static_argnums=0), one, geom, cloud, T),
-        "insert": _median_ms_donated(jax.jit(geometry.insert, donate_argnums=0), geom, cloud_w),
+        "insert": _median_ms(jax.jit(geometry.insert, donate_argnums=0), geom, cloud_w, donated=True),
     }
-
-
-def _median_ms_donated(f, geom, *args, repeats=20) -> float:
-    """As :func:`_median_ms` for a function updating ``geom`` in place (donated, as in the
-    tracking step): each call gets a fresh copy, made outside the timed region."""
-    import jax
-    import jax.numpy as jnp
-
-    times = []
-    for _ in range(repeats + 1):
-        g = jax.block_until_ready(jax.tree.map(jnp.copy, geom))
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(g, *args))
-        times.append(time.perf_counter() - t0)
-    return 1000 * float(np.median(times[1:]))
 
 
 def main() -> None:

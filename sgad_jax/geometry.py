@@ -5,8 +5,8 @@ Layout (see :class:`sgad_jax.types.GeometrySet`): the data (point, covariance, n
 entry's data is. The table has at least 8 entries per data slot, in buckets of :data:`BUCKET`; a
 key lives in its home bucket (a multiplicative hash of the key) or the next one, so a lookup is
 one gather of two buckets and a comparison, and an insertion touches only the buckets of the new
-keys. On XLA:CPU this looks up the 8 voxels around 12k points in 0.8 ms, where binary searches in
-a sorted key array took 1.6 ms, and an insertion no longer rebuilds an index of the whole capacity.
+keys. On XLA:CPU this looks up the 8 voxels around 12k points in 1.0 ms, where binary searches in
+a sorted key array took 1.6-1.8 ms, and an insertion no longer rebuilds an index of the whole capacity.
 A key whose two buckets are full is dropped and counted as overflow (with the table at most 1/8
 full, two buckets of 4 hold 8 keys where 1 is expected; every key reported in ``InsertInfo``).
 
@@ -25,11 +25,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from sgad_jax.types import KEY_EMPTY, GeometrySet, InsertInfo, PointCloud
+from sgad_jax.types import BUCKET, KEY_EMPTY, GeometrySet, InsertInfo, PointCloud
 
 BITS = 10
-#: Entries per hash bucket; a key is stored in its home bucket or the next one.
-BUCKET = 4
 SIDE = 1 << BITS
 HALF = SIDE // 2
 
@@ -59,13 +57,18 @@ _NO_HASH = 0xFFFFFFFF
 
 
 def _bucket(geom: GeometrySet, h: Int[Array, "*m"]) -> Int[Array, "*m"]:
+    """The bucket of each hash: its top bits."""
     bits = geom.bucket_keys.shape[0].bit_length() - 1  # a power of two of buckets, at least 2
     return (h >> (32 - bits)).astype(jnp.int32)
 
 
+def _hash(key: Int[Array, "*m"]) -> Int[Array, "*m"]:
+    return key.astype(jnp.uint32) * jnp.uint32(_GOLDEN)
+
+
 def _home(geom: GeometrySet, key: Int[Array, "*m"]) -> Int[Array, "*m"]:
     """Home bucket of each key."""
-    return _bucket(geom, key.astype(jnp.uint32) * jnp.uint32(_GOLDEN))
+    return _bucket(geom, _hash(key))
 
 
 def _lookup(geom: GeometrySet, key: Int[Array, "*m"]) -> tuple[Int[Array, "*m"], Bool[Array, "*m"]]:
@@ -111,10 +114,10 @@ def insert(geom: GeometrySet, cloud_w: PointCloud) -> tuple[GeometrySet, InsertI
     m = key.shape[0]
     nb = geom.bucket_keys.shape[0]
     end = nb * BUCKET  # an entry index past the table: scatters there are dropped
-    h = jnp.where(new, key.astype(jnp.uint32) * jnp.uint32(_GOLDEN), jnp.uint32(_NO_HASH))
+    h = jnp.where(new, _hash(key), jnp.uint32(_NO_HASH))
     hs = jnp.sort(h)  # points that add nothing sort last
     b = _bucket(geom, hs)
-    key = (hs * jnp.uint32(_GOLDEN_INV)).astype(jnp.int32)
+    skey = (hs * jnp.uint32(_GOLDEN_INV)).astype(jnp.int32)
     first = (hs != jnp.uint32(_NO_HASH)) & jnp.concatenate([jnp.ones((1,), bool), hs[1:] != hs[:-1]])
     at = jnp.where(new, jnp.searchsorted(hs, h, side="left", method="scan"), m)  # the first position of its key
     src = jnp.full((m,), m - 1, jnp.int32).at[at].min(jnp.arange(m, dtype=jnp.int32), mode="drop")
@@ -124,18 +127,18 @@ def insert(geom: GeometrySet, cloud_w: PointCloud) -> tuple[GeometrySet, InsertI
     rank = before - before[jnp.searchsorted(b, b, side="left", method="scan")]
 
     def filled(table, bucket):
-        return jnp.sum(table[jnp.minimum(bucket, nb - 1)] != KEY_EMPTY, axis=-1)
+        return jnp.sum(table[bucket] != KEY_EMPTY, axis=-1)
 
     # Home buckets first, then what did not fit goes to the next bucket, after that one's own keys.
     free = BUCKET - filled(geom.bucket_keys, b)
     home = take & (rank < free)
     entry = jnp.where(home, b * BUCKET + BUCKET - free + rank, end)
-    table = geom.bucket_keys.reshape(-1).at[entry].set(key, mode="drop").reshape(nb, BUCKET)
+    table = geom.bucket_keys.reshape(-1).at[entry].set(skey, mode="drop").reshape(nb, BUCKET)
     b2 = (b + 1) & (nb - 1)
     pos = filled(table, b2) + rank - free
     spill = take & ~home & (pos < BUCKET)
     entry = jnp.where(spill, b2 * BUCKET + pos, entry)
-    table = table.reshape(-1).at[jnp.where(spill, entry, end)].set(key, mode="drop").reshape(nb, BUCKET)
+    table = table.reshape(-1).at[jnp.where(spill, entry, end)].set(skey, mode="drop").reshape(nb, BUCKET)
     placed = home | spill
     slot = geom.count + jnp.cumsum(placed) - placed
     slots = geom.bucket_slots.reshape(-1).at[entry].set(slot, mode="drop").reshape(nb, BUCKET)

@@ -133,8 +133,8 @@ class GeometrySet:
     ``xx yy zz xy xz yz``.
     """
 
-    bucket_keys: Int[Array, "nb 4"]
-    bucket_slots: Int[Array, "nb 4"]
+    bucket_keys: Int[Array, "nb bucket"]
+    bucket_slots: Int[Array, "nb bucket"]
     points: Float[Array, "3 n"]
     covs: Float[Array, "6 n"]
     normals: Float[Array, "3 n"]
@@ -152,6 +152,8 @@ class GeometrySet:
 
 
 KEY_EMPTY = np.int32(2**31 - 1)
+#: Entries per hash bucket of a geometry set; a key is stored in its home bucket or the next one.
+BUCKET = 4
 
 
 def empty_geometry(capacity: int, voxel_size: float, origin=(0.0, 0.0, 0.0)) -> GeometrySet:
@@ -160,9 +162,9 @@ def empty_geometry(capacity: int, voxel_size: float, origin=(0.0, 0.0, 0.0)) -> 
         raise ValueError(f"geometry set needs capacity > 0 and voxel_size > 0, got {capacity}, {voxel_size}")
     buckets = 1 << max(1, (2 * capacity - 1).bit_length())
     return GeometrySet(
-        # Buckets of 4 entries, at least 8 entries per data slot, a power of two of buckets.
-        bucket_keys=jnp.full((buckets, 4), KEY_EMPTY, jnp.int32),
-        bucket_slots=jnp.zeros((buckets, 4), jnp.int32),
+        # At least 8 table entries per data slot, a power of two of buckets.
+        bucket_keys=jnp.full((buckets, BUCKET), KEY_EMPTY, jnp.int32),
+        bucket_slots=jnp.zeros((buckets, BUCKET), jnp.int32),
         points=jnp.zeros((3, capacity), jnp.float32),
         covs=jnp.zeros((6, capacity), jnp.float32),
         normals=jnp.zeros((3, capacity), jnp.float32),
