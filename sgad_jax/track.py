@@ -128,7 +128,23 @@ def _moved(T: lie.SE3, T_ref: lie.SE3, reach: float) -> Float[Array, ""]:
 
 
 def solve(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3) -> tuple[lie.SE3, TrackInfo]:
-    """Gauss-Newton GICP from ``T0`` (not differentiable: use :func:`track` for gradients)."""
+    """Gauss-Newton GICP from ``T0`` (not differentiable: use :func:`track` for gradients).
+
+    Coarse to fine: for each ``c`` in ``cfg.coarse`` the solver first converges on every ``c``-th
+    point of the cloud, from the previous level's pose; the last level is the whole cloud, so the
+    result is a converged pose of the full cost whatever the levels. ``info.iterations`` counts the
+    steps of all levels.
+    """
+    steps = 0
+    for c in (*cfg.coarse, 1):
+        level = cloud if c == 1 else jax.tree.map(lambda a, c=c: a[..., ::c], cloud)
+        T0, info = _gauss_newton(cfg, geom, level, T0)
+        steps = steps + info.iterations
+    return T0, dataclasses.replace(info, iterations=steps)
+
+
+def _gauss_newton(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3) -> tuple[lie.SE3, TrackInfo]:
+    """Gauss-Newton GICP of one level, from ``T0``, until convergence or ``cfg.max_iterations``."""
     reach = cfg.max_depth if cfg.max_depth > 0 else 4.0
     weight = depth_weights(cfg, cloud)
 

@@ -82,6 +82,7 @@ def test_corrupt_frame_keeps_results(tmp_path, capsys):
         (["--config", "nosuchpreset"], "nosuchpreset"),
         (["--set", "track.nosuchfield=1"], "nosuchfield"),
         (["--set", "track.stride=abc"], "track.stride"),
+        (["--track-only", "--set", "track.coarse=3,0"], "track.coarse"),
     ],
 )
 def test_bad_arguments_one_line(tmp_path, capsys, args, needle):
