@@ -90,10 +90,14 @@ def _stage_times(tcfg, geom, depth, intr, T) -> dict:
 
     cloud = jax.jit(gicp.frame_points, static_argnums=0)(tcfg, depth, intr)
     cloud_w = transform_cloud(T, cloud)
-    one = dataclasses.replace(tcfg, max_iterations=1)
+    one = dataclasses.replace(tcfg, max_iterations=1, coarse=())  # the full cloud's lookup and step
+
+    def lookup(geom, q, valid):  # without returning the geometry set's covariances (a 6 MB copy)
+        return dataclasses.replace(gather_candidates(geom, q, valid), covs=None)
+
     return {
         "frame_points": _median_ms(jax.jit(gicp.frame_points, static_argnums=0), tcfg, depth, intr),
-        "candidate_lookup": _median_ms(jax.jit(gather_candidates), geom, cloud_w.points, cloud_w.valid),
+        "candidate_lookup": _median_ms(jax.jit(lookup), geom, cloud_w.points, cloud_w.valid),
         "lookup_and_one_iteration": _median_ms(jax.jit(solve, static_argnums=0), one, geom, cloud, T),
         "insert": _median_ms(jax.jit(geometry.insert, donate_argnums=0), geom, cloud_w, donated=True),
     }
