@@ -54,7 +54,7 @@ class TrackConfig:
     max_depth: float = 0.0  # 0: no limit
     voxel_size: float = 0.02  # geometry set: one Gaussian per voxel; a point in an occupied voxel overlaps T
     capacity: int = 1 << 18  # geometry set capacity (Gaussians); overflow is reported, never silent
-    max_iterations: int = 30
+    max_iterations: int = 30  # Gauss-Newton steps per solver level (see coarse)
     tolerance: float = 5e-4  # stop when the update's translation (m) and rotation (rad) fall below it
     max_correspondence: float = 0.05  # metres between a point and its match in T
     nn_weight: float = 0.1  # match score (n_b . e)^2 + nn_weight |e|^2: 0 is pure point-to-surface
