@@ -70,6 +70,10 @@ class TrackConfig:
     # all points; () is one level, as in the paper. Same accuracy, fewer full-size steps (README).
     coarse: tuple[int, ...] = (3,)
 
+    def __post_init__(self):
+        if any(c < 1 for c in self.coarse):
+            raise ConfigError(f"track.coarse: each level takes every c-th point, c >= 1; got {self.coarse}")
+
 
 @dataclasses.dataclass(frozen=True)
 class MapConfig:

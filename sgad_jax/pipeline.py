@@ -429,8 +429,6 @@ def run(
         DatasetError: on bad input (after writing whatever was computed before it).
         ConfigError: when the checkpoint to resume was made with another config or dataset.
     """
-    if any(c < 1 for c in cfg.track.coarse):
-        raise ConfigError(f"track.coarse: each level takes every c-th point, c >= 1; got {cfg.track.coarse}")
     ds = open_dataset(cfg.data)
     out = None if out_dir is None else pathlib.Path(out_dir)
     main = jax.process_index() == 0

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from sgad_jax import gicp, lie, slam
-from sgad_jax.config import DataConfig, SyntheticConfig, TrackConfig
+from sgad_jax.config import ConfigError, DataConfig, SyntheticConfig, TrackConfig
 from sgad_jax.io.synthetic import SyntheticDataset
 from sgad_jax.track import cost, solve, track
 
@@ -78,6 +78,11 @@ def test_coarse_to_fine_is_as_accurate_as_one_level(scene, j):
         T, info = solve(dataclasses.replace(CFG, coarse=levels), geom, cloud, guess)
         t_err, r_err = _errors(T, ds.gt_poses[j])
         assert bool(info.converged) and t_err < 1e-4 and r_err < 0.01, (levels, t_err, r_err)
+
+
+def test_coarse_levels_must_take_points():
+    with pytest.raises(ConfigError, match="track.coarse"):
+        TrackConfig(coarse=(3, 0))
 
 
 def test_vmap_over_guesses(scene):
