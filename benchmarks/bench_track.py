@@ -80,27 +80,35 @@ def _median_ms(f, *args, repeats=20, donated=False) -> float:
 
 
 def _stage_times(tcfg, geom, depth, intr, T) -> dict:
-    """Each stage of our step on its own (medians, ms) on the last frame at its tracked pose."""
+    """Each stage of our step on the last frame at its tracked pose (medians, ms). Point extraction
+    and insertion run once per frame and are timed as calls; a Gauss-Newton step and a candidate
+    lookup run inside the solver's loop and are timed there, as the cost of one more iteration
+    (a separate call per step would add the call's own overhead, 0.1-0.3 ms here), on the full
+    cloud and on the first coarse level (``*_coarse``: every ``tcfg.coarse[0]``-th point)."""
     import dataclasses
 
     import jax
 
     from sgad_jax import geometry, gicp
-    from sgad_jax.track import gather_candidates, solve, transform_cloud
+    from sgad_jax.track import _gauss_newton, transform_cloud
 
     cloud = jax.jit(gicp.frame_points, static_argnums=0)(tcfg, depth, intr)
-    cloud_w = transform_cloud(T, cloud)
-    one = dataclasses.replace(tcfg, max_iterations=1, coarse=())  # the full cloud's lookup and step
 
-    def lookup(geom, q, valid):  # without returning the geometry set's covariances (a 6 MB copy)
-        return dataclasses.replace(gather_candidates(geom, q, valid), covs=None)
+    def per_iteration(points, fresh):  # fresh=0: a lookup before every step; 1e9: only the first
+        def run(n):
+            cf = dataclasses.replace(tcfg, max_iterations=n, tolerance=0.0)
+            return jax.jit(lambda g, cl, T: _gauss_newton(cf, g, cl, T, fresh)[0].wxyz_xyz)
 
-    return {
-        "frame_points": _median_ms(jax.jit(gicp.frame_points, static_argnums=0), tcfg, depth, intr),
-        "candidate_lookup": _median_ms(jax.jit(lookup), geom, cloud_w.points, cloud_w.valid),
-        "lookup_and_one_iteration": _median_ms(jax.jit(solve, static_argnums=0), one, geom, cloud, T),
-        "insert": _median_ms(jax.jit(geometry.insert, donate_argnums=0), geom, cloud_w, donated=True),
-    }
+        return (_median_ms(run(8), geom, points, T) - _median_ms(run(1), geom, points, T)) / 7
+
+    out = {"frame_points": _median_ms(jax.jit(gicp.frame_points, static_argnums=0), tcfg, depth, intr)}
+    for name, c in (("", 1), *(("_coarse", c) for c in tcfg.coarse[:1])):  # coarse: every c-th point
+        points = jax.tree.map(lambda a, c=c: a[..., ::c], cloud)
+        step = per_iteration(points, 1e9)
+        out["gauss_newton_step" + name] = step
+        out["candidate_lookup" + name] = per_iteration(points, 0.0) - step
+    out["insert"] = _median_ms(jax.jit(geometry.insert, donate_argnums=0), geom, transform_cloud(T, cloud), donated=True)
+    return out
 
 
 def main() -> None:
