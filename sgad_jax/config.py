@@ -69,10 +69,16 @@ class TrackConfig:
     # Coarse to fine: Gauss-Newton first converges on every c-th point for each c in turn, then on
     # all points; () is one level, as in the paper. Same accuracy, fewer full-size steps (README).
     coarse: tuple[int, ...] = (3,)
+    # Largest multiple of a Gauss-Newton update taken when consecutive updates shrink the same way
+    # (Aitken extrapolation, sgad_jax.track._stretch); 1: plain Gauss-Newton. Fewer steps, same
+    # accuracy (README).
+    extrapolation: float = 4.0
 
     def __post_init__(self):
         if any(c < 1 for c in self.coarse):
             raise ConfigError(f"track.coarse: each level takes every c-th point, c >= 1; got {self.coarse}")
+        if not self.extrapolation >= 1.0:
+            raise ConfigError(f"track.extrapolation: an update can only be lengthened, >= 1; got {self.extrapolation}")
 
 
 @dataclasses.dataclass(frozen=True)
