@@ -64,6 +64,24 @@ def test_insert_keeps_one_gaussian_per_voxel():
     np.testing.assert_array_equal(np.asarray(g2.points), before)
 
 
+def test_insert_in_chunks_keeps_the_first_point_of_each_voxel():
+    # More new points than one chunk takes, many voxels reached again in a later chunk: each voxel
+    # must still hold the first valid point (lowest index) to reach it, as a plain loop finds it.
+    rng = np.random.default_rng(1)
+    m = 3 * geometry.CHUNK + 100
+    pts = rng.uniform(-0.3, 0.3, (3, m)).astype(np.float32)  # ~1700 voxels for ~3200 points
+    valid = rng.uniform(size=m) > 0.2
+    g, info = jax.jit(geometry.insert)(empty_geometry(8192, VOXEL), _cloud(pts, valid))
+    first = {}
+    for i in np.nonzero(valid)[0]:
+        first.setdefault(tuple(np.floor(pts[:, i] / VOXEL).astype(int)), i)
+    assert int(info.inserted) == int(g.count) == len(first) and int(info.overflow) == 0
+    _check_invariants(g)
+    stored = np.asarray(g.points[:, : int(g.count)])
+    want = pts[:, sorted(first.values())]
+    np.testing.assert_array_equal(stored[:, np.lexsort(stored)], want[:, np.lexsort(want)])
+
+
 def test_insert_reports_overflow_and_range():
     g = empty_geometry(64, VOXEL)
     pts = np.stack([np.arange(100) * VOXEL + VOXEL / 2, np.zeros(100), np.zeros(100)]).astype(np.float32)
