@@ -24,5 +24,6 @@ def test_bench_track_prints_both_trackers():
     assert out["frames"] == 6
     for key in ("ours_ms_median", "small_gicp_ms_median", "ratio", "ours_ate_cm", "small_gicp_ate_cm", "ours_compile_s"):
         assert out[key] > 0, key
+    assert len(out["rounds_ms"]) == 5 and all(r["ours"] > 0 and r["small_gicp"] > 0 for r in out["rounds_ms"])
     # both trackers follow the camera over 6 frames of fr1/xyz to within a centimetre
     assert out["ours_ate_cm"] < 1.0 and out["small_gicp_ate_cm"] < 1.0
