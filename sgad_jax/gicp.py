@@ -164,7 +164,7 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
         return rank + ((d2 < D) | ((d2 == D) & (o2 < order))).astype(counts)
 
     rank = jax.lax.fori_loop(0, len(dist), count, jnp.zeros(D.shape, counts), unroll=5)
-    w = list(((rank < cfg.k) & jnp.isfinite(D)).astype(jnp.float32))
+    w = list(((rank < min(cfg.k, len(dist))) & jnp.isfinite(D)).astype(jnp.float32))  # ranks < len(dist)
     cnt = sum(w)
     inv = 1.0 / jnp.maximum(cnt, 1.0)
     mean = [sum(wi * q[c] for wi, q in zip(w, neigh)) * inv for c in range(3)]
