@@ -87,6 +87,28 @@ def _null_vector(xx, yy, zz, xy, xz, yz, lam):
     return tuple(ci * inv for ci in best)
 
 
+@jax.custom_jvp
+def _materialise(tree):
+    """``tree`` unchanged, but computed once and stored, never recomputed by its readers.
+
+    XLA:CPU fuses cheap element-wise producers into each of their consumers, so a value read by
+    several output rows (the eigen-decomposition below feeds nine) is recomputed for each of them.
+    A one-turn ``while_loop`` whose turn count XLA cannot see stops that: its result is a stored
+    buffer. (An optimisation barrier does not: XLA:CPU drops it before fusion; a loop that passes
+    its input through unchanged is folded away.) Frame extraction is ~30% faster with it (README).
+    Differentiable: the tangent passes straight through.
+    """
+    first = jax.tree.leaves(tree)[0]
+    zero = (first.ravel()[0].astype(jnp.float32) > jnp.inf).astype(jnp.int32)  # 0, unknown to XLA
+    init = (zero, tree, jax.tree.map(jnp.zeros_like, tree))
+    return jax.lax.while_loop(lambda c: c[0] < 1, lambda c: (c[0] + 1, c[1], c[1]), init)[2]
+
+
+@_materialise.defjvp
+def _materialise_jvp(primals, tangents):
+    return _materialise(primals[0]), tangents[0]
+
+
 def normalise_covariance(cov: Float[Array, "6 *m"], eps: float) -> tuple[Float[Array, "6 *m"], Float[Array, "3 *m"], Bool[Array, "*m"]]:
     """Ellipse-scale normalisation (SGAD-SLAM Sec. 3.3) and normals.
 
@@ -101,6 +123,7 @@ def normalise_covariance(cov: Float[Array, "6 *m"], eps: float) -> tuple[Float[A
     l2s = jnp.where(ok, l2, 1.0)
     # Raise the smallest eigenvalue to eps * l2 along n, then divide by l2.
     bump = jnp.maximum(eps * l2s - l3, 0.0)
+    n, l2s, bump, ok = _materialise((n, l2s, bump, ok))
     nn = (n[0] * n[0], n[1] * n[1], n[2] * n[2], n[0] * n[1], n[0] * n[2], n[1] * n[2])
     out = jnp.stack([(c + bump * d) / l2s for c, d in zip((xx, yy, zz, xy, xz, yz), nn)])
     return out, jnp.stack(n), ok
@@ -172,6 +195,7 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
         sum(wi * (q[a] - mean[a]) * (q[b] - mean[b]) for wi, q in zip(w, neigh)) * inv
         for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
     ])
+    cov, cnt = _materialise((cov, cnt))
     cov_n, normal, ok = normalise_covariance(cov, cfg.eps)
     valid = valid & ok & (cnt >= min(cfg.k, 5))
     eye = jnp.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])[:, None, None]

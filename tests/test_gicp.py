@@ -112,6 +112,22 @@ def test_frame_points_plane_normals():
     assert np.allclose(np.einsum("i,nij,j->n", n, C, n), 1e-3, rtol=0.05)
 
 
+def test_materialise_is_the_identity_under_jit_vmap_and_grad():
+    """The fusion stop returns its input, batches, and passes gradients (here of sum x^2 sin y)."""
+    rng = np.random.default_rng(3)
+    x, y = jnp.asarray(rng.normal(size=(4, 7)), jnp.float32), jnp.asarray(rng.normal(size=(4, 7)), jnp.float32)
+    flag = x > 0
+    out = jax.jit(gicp._materialise)((x, (y, flag)))
+    np.testing.assert_array_equal(out[0], x)
+    np.testing.assert_array_equal(out[1][0], y)
+    np.testing.assert_array_equal(out[1][1], flag)
+    np.testing.assert_array_equal(jax.vmap(gicp._materialise)(x), x)
+    f = lambda a, b: jnp.sum(gicp._materialise((a * a, jnp.sin(b)))[0] * jnp.sin(b))  # noqa: E731
+    ga, gb = jax.jit(jax.grad(f, argnums=(0, 1)))(x, y)
+    np.testing.assert_allclose(ga, 2 * x * np.sin(y), rtol=1e-6)
+    np.testing.assert_allclose(gb, x * x * np.cos(y), rtol=1e-5, atol=1e-7)
+
+
 def _pairs(seed, m):
     """Random point pairs ``a, b`` (3, m), SPD matrices ``Ca, Cb`` (6, m), weights and a pose (float64)."""
     rng = np.random.default_rng(seed)
