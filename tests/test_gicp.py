@@ -56,7 +56,21 @@ def _bumpy_depth(h=40, w=48):
     return depth
 
 
-@pytest.mark.parametrize("k,window", [(10, 5), (23, 5), (6, 3), (30, 7)])
+@pytest.mark.parametrize("k", [1, 3, 4, 5, 10, 20, 21, 23, 24, 25, 30])
+def test_nearest_matches_a_stable_sort(k):
+    """k smallest of each column by a stable argsort (ties: lower index first), infinities never;
+    values from a small set, so that ties are everywhere. k = 1-4 and 21-24 take the sorted-list
+    path, 5-20 the rank counts."""
+    rng = np.random.default_rng(k)
+    D = rng.choice(np.array([0.0, 0.5, 0.5, 1.0, 2.0, np.inf], np.float32), size=(25, 40, 3))
+    want = np.zeros(D.shape, bool)
+    order = np.argsort(D, axis=0, kind="stable")[:k]
+    np.put_along_axis(want, order, True, axis=0)
+    want &= np.isfinite(D)
+    np.testing.assert_array_equal(np.asarray(jax.jit(gicp._nearest, static_argnums=1)(jnp.asarray(D), k)), want)
+
+
+@pytest.mark.parametrize("k,window", [(10, 5), (23, 5), (6, 3), (30, 7), (4, 5)])
 def test_frame_points_match_brute_force_knn(k, window):
     """Covariance of each point from its k nearest (3-D) among the window, recomputed in numpy."""
     cfg = TrackConfig(stride=2, k=k, window=window, depth_gate=0.1, eps=1e-3)
