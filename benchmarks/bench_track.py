@@ -167,7 +167,7 @@ def main() -> None:
                 poses.append(poses[-1])
                 continue
             t0 = time.perf_counter()
-            state, T, info, _ = step(state, jnp.asarray(depth), intr, dt, None)
+            state, T, info, _ = step(state, depth, intr, dt, None)  # a host array, as read
             pose = np.asarray(T.as_matrix())
             times.append(time.perf_counter() - t0)
             poses.append(pose)
