@@ -136,3 +136,23 @@ def test_full_buckets_spill_then_overflow():
     g2, info = geometry.insert(g, _cloud(pts[:, found]))
     assert int(info.inserted) == 0
     np.testing.assert_array_equal(np.asarray(g2.bucket_keys), np.asarray(g.bucket_keys))
+
+
+def test_last_bucket_spills_into_the_first():
+    """Six voxels whose home is the last bucket: four stay there, two wrap to bucket 0, and a
+    lookup finds all six at their slots (the lookup reads a key's two buckets as one block, and
+    the last bucket's block wraps)."""
+    g = empty_geometry(64, VOXEL)
+    nb = g.bucket_keys.shape[0]
+    xs = (np.arange(4000) % 1000 - 500 + 0.5) * VOXEL
+    pts = np.stack([xs, np.zeros_like(xs), np.full_like(xs, (np.arange(4000) // 1000 - 2 + 0.5) * VOXEL)]).astype(np.float32)
+    key, _ = geometry.pack(geometry.voxel_coords(g, jnp.asarray(pts)))
+    last = np.nonzero(np.asarray(geometry._home(g, key)) == nb - 1)[0][:6]
+    assert len(last) == 6
+    g, info = geometry.insert(g, _cloud(pts[:, last]))
+    assert int(info.inserted) == 6 and int(info.overflow) == 0
+    _check_invariants(g)
+    assert (np.asarray(g.bucket_keys[0]) != KEY_EMPTY).sum() == 2
+    slot, hit = geometry._lookup(g, key[last])
+    assert np.asarray(hit).all()
+    np.testing.assert_allclose(np.asarray(g.points[:, np.asarray(slot)]), pts[:, last])
