@@ -96,7 +96,7 @@ def _materialise(tree):
     several output rows (the eigen-decomposition below feeds nine) is recomputed for each of them.
     A one-turn ``while_loop`` whose turn count XLA cannot see stops that: its result is a stored
     buffer. (An optimisation barrier does not: XLA:CPU drops it before fusion; a loop that passes
-    its input through unchanged is folded away.) Frame extraction is ~30% faster with it (README).
+    its input through unchanged is folded away.) Frame extraction is 15-32% faster with it (README).
     Differentiable: the tangent passes straight through.
     """
     first = jax.tree.leaves(tree)[0]
@@ -134,7 +134,7 @@ def normalise_covariance(cov: Float[Array, "6 *m"], eps: float) -> tuple[Float[A
 # Frame preprocessing
 
 #: Up to this many entries (min(k, n - k) of n), :func:`_nearest` keeps a sorted list instead of
-#: counting ranks. TUM (k = 23 of 25, a list of the 2 farthest): extraction 20% faster; the list
+#: counting ranks. TUM (k = 23 of 25, a list of the 2 farthest): extraction 20-26% faster; the list
 #: costs ~2t compare-and-selects per offset against the ranks' fixed n, equal at about t = 6
 #: (measured at k = 18-21 of 25).
 _LIST_MAX = 4
