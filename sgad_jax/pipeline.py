@@ -464,8 +464,7 @@ def run(
     what = "tracking" if track_only else "tracking + mapping"
     bar = tqdm(total=len(ds), initial=start, desc=f"{what} {ds.name}", unit="frame", disable=not (progress and main), file=sys.stderr)
     try:
-        for i in range(start, len(ds)):
-            sample = ds[i]
+        for i, sample in enumerate(ds.frames(start), start):
             try:
                 system.add(sample)
             except TrackingDiverged as err:

@@ -492,6 +492,25 @@ def test_size_mismatch(tmp_path):
     assert str(bad_depth) in str(e.value)
 
 
+def test_frames_read_ahead_in_order_and_fail_at_the_bad_frame(tmp_path):
+    root = make_generic(tmp_path, n=6)
+    d = GenericDataset(root, cfg(root))
+    got = list(d.frames(start=2, ahead=3))
+    assert [s.index for s in got] == [2, 3, 4, 5]
+    for s in got:
+        want = d[s.index]
+        assert np.array_equal(s.depth, want.depth) and np.array_equal(s.rgb, want.rgb)
+    # Frame 3 is corrupt: it is read (and fails) while frame 1 is still being handed out, but the
+    # error comes when its turn comes, after every frame before it.
+    bad = root / "depth/0003.png"
+    bad.write_bytes(b"not a png")
+    seen = []
+    with pytest.raises(DatasetError, match="cannot decode") as e:
+        for s in d.frames(ahead=2):
+            seen.append(s.index)
+    assert seen == [0, 1, 2] and str(bad) in str(e.value)
+
+
 def test_malformed_files(tmp_path):
     root = make_tum(tmp_path / "fr1")
     (root / "groundtruth.txt").write_text("1 2 3\n")

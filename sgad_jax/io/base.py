@@ -8,6 +8,8 @@ selection (start, stride, max frames), depth truncation, integer downscaling and
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import dataclasses
 import functools
 import pathlib
@@ -193,6 +195,27 @@ class Dataset:
             pose_gt=np.asarray(self.gt_poses_raw[j], np.float64),
             inpaint=self.cfg.inpaint,
         )
+
+    def frames(self, start: int = 0, ahead: int = 2):
+        """``self[i]`` for ``i`` from ``start`` on, read on a background thread up to ``ahead``
+        frames before they are asked for, so that decoding overlaps the caller's work.
+
+        A frame that cannot be read raises its :class:`DatasetError` when its turn comes, after
+        every frame before it has been yielded.
+        """
+        with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="sgad-read") as pool:
+            pending = collections.deque(pool.submit(self.__getitem__, i) for i in range(start, min(start + ahead + 1, len(self))))
+            nxt = start + len(pending)
+            try:
+                while pending:
+                    sample = pending.popleft().result()
+                    if nxt < len(self):
+                        pending.append(pool.submit(self.__getitem__, nxt))
+                        nxt += 1
+                    yield sample
+            finally:
+                for future in pending:
+                    future.cancel()
 
     def _describe(self, j: int) -> str:
         """A file or folder naming frame ``j``, for error messages; loaders may override."""
