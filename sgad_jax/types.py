@@ -128,7 +128,8 @@ class GeometrySet:
     The data (point, covariance, normal) of the ``count`` active entries is stored in insertion
     order, slots ``[0, count)``. A hash table says where each voxel's data is:
     ``bucket_keys[i, j]`` is a packed voxel key (``KEY_EMPTY`` if free; buckets fill from
-    ``j = 0``) and ``bucket_slots[i, j]`` its data slot (see :mod:`sgad_jax.geometry`).
+    ``j = 0``) and ``bucket_slots[i, j]`` its data slot; a power of two of home buckets and one
+    more, which takes the last home bucket's spill (see :mod:`sgad_jax.geometry`).
     Covariances are scale-normalised (middle eigenvalue 1) and stored as their six unique entries
     ``xx yy zz xy xz yz``.
     """
@@ -162,9 +163,10 @@ def empty_geometry(capacity: int, voxel_size: float, origin=(0.0, 0.0, 0.0)) -> 
         raise ValueError(f"geometry set needs capacity > 0 and voxel_size > 0, got {capacity}, {voxel_size}")
     buckets = 1 << max(1, (2 * capacity - 1).bit_length())
     return GeometrySet(
-        # At least 8 table entries per data slot, a power of two of buckets.
-        bucket_keys=jnp.full((buckets, BUCKET), KEY_EMPTY, jnp.int32),
-        bucket_slots=jnp.zeros((buckets, BUCKET), jnp.int32),
+        # At least 8 table entries per data slot, a power of two of home buckets, and one bucket
+        # more for the last home bucket's spill.
+        bucket_keys=jnp.full((buckets + 1, BUCKET), KEY_EMPTY, jnp.int32),
+        bucket_slots=jnp.zeros((buckets + 1, BUCKET), jnp.int32),
         points=jnp.zeros((3, capacity), jnp.float32),
         covs=jnp.zeros((6, capacity), jnp.float32),
         normals=jnp.zeros((3, capacity), jnp.float32),

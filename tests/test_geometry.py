@@ -31,14 +31,13 @@ def _check_invariants(g):
     slots are exactly [0, count), and each key is the voxel of its slot's point."""
     n = int(g.count)
     keys, slots = np.asarray(g.bucket_keys), np.asarray(g.bucket_slots)
-    nb = keys.shape[0]
     used = keys != KEY_EMPTY
     assert used.sum() == n and len(set(keys[used].tolist())) == n
     assert np.all(np.diff(used.astype(int), axis=1) <= 0)  # no free entry before a used one
     assert sorted(slots[used].tolist()) == list(range(n))
     home = np.asarray(geometry._home(g, jnp.asarray(keys[used])))
     bucket = np.nonzero(used)[0]
-    assert np.all((bucket == home) | (bucket == (home + 1) % nb))
+    assert np.all((bucket == home) | (bucket == home + 1))
     k, _ = geometry.pack(geometry.voxel_coords(g, g.points[:, slots[used]]))
     np.testing.assert_array_equal(np.asarray(k), keys[used])
 
@@ -119,8 +118,9 @@ def test_occupied():
 
 
 def test_full_buckets_spill_then_overflow():
-    """A table of 2 buckets (8 entries) for 20 new voxels: keys go to their home bucket, then the
-    next one; what fits nowhere is dropped and counted, the data of the rest is intact and found."""
+    """A table of 2 buckets (8 entries: one home bucket and the one for its spill) for 20 new
+    voxels: keys go to their home bucket, then the next one; what fits nowhere is dropped and
+    counted, the data of the rest is intact and found."""
     g = empty_geometry(64, VOXEL)
     g = dataclasses.replace(g, bucket_keys=g.bucket_keys[:2], bucket_slots=g.bucket_slots[:2])
     pts = np.stack([np.arange(20) * VOXEL + VOXEL / 2, np.zeros(20), np.zeros(20)]).astype(np.float32)
@@ -138,12 +138,12 @@ def test_full_buckets_spill_then_overflow():
     np.testing.assert_array_equal(np.asarray(g2.bucket_keys), np.asarray(g.bucket_keys))
 
 
-def test_last_bucket_spills_into_the_first():
-    """Six voxels whose home is the last bucket: four stay there, two wrap to bucket 0, and a
-    lookup finds all six at their slots (the lookup reads a key's two buckets as one block, and
-    the last bucket's block wraps)."""
+def test_last_bucket_spills_into_the_extra_bucket():
+    """Six voxels whose home is the last home bucket: four stay there, two go to the bucket past
+    it (none to bucket 0), and a lookup finds all six at their slots (the lookup reads a key's
+    two buckets as one block)."""
     g = empty_geometry(64, VOXEL)
-    nb = g.bucket_keys.shape[0]
+    nb = g.bucket_keys.shape[0] - 1  # home buckets
     xs = (np.arange(4000) % 1000 - 500 + 0.5) * VOXEL
     pts = np.stack([xs, np.zeros_like(xs), np.full_like(xs, (np.arange(4000) // 1000 - 2 + 0.5) * VOXEL)]).astype(np.float32)
     key, _ = geometry.pack(geometry.voxel_coords(g, jnp.asarray(pts)))
@@ -152,7 +152,8 @@ def test_last_bucket_spills_into_the_first():
     g, info = geometry.insert(g, _cloud(pts[:, last]))
     assert int(info.inserted) == 6 and int(info.overflow) == 0
     _check_invariants(g)
-    assert (np.asarray(g.bucket_keys[0]) != KEY_EMPTY).sum() == 2
+    used = np.asarray(g.bucket_keys) != KEY_EMPTY
+    assert used[nb - 1].sum() == 4 and used[nb].sum() == 2 and used.sum() == 6
     slot, hit = geometry._lookup(g, key[last])
     assert np.asarray(hit).all()
     np.testing.assert_allclose(np.asarray(g.points[:, np.asarray(slot)]), pts[:, last])
