@@ -5,8 +5,9 @@ Layout (see :class:`sgad_jax.types.GeometrySet`): the data (point, covariance, n
 entry's data is. The table has at least 8 entries per data slot, in buckets of :data:`BUCKET`; a
 key lives in its home bucket (a multiplicative hash of the key) or the next one, so a lookup is
 one gather of two adjacent buckets and a comparison, and an insertion touches only the buckets of
-the new keys. One bucket past the home buckets takes the last one's spill. On XLA:CPU this looks up the 8 voxels around 12k points in 1.0 ms, where binary searches in
-a sorted key array took 1.6-1.8 ms, and an insertion no longer rebuilds an index of the whole capacity.
+the new keys; one bucket past the home buckets takes the last one's spill. On XLA:CPU this looks
+up the 8 voxels around 12k points in 0.7 ms, where binary searches in a sorted key array took
+1.6-1.8 ms, and an insertion no longer rebuilds an index of the whole capacity.
 A key whose two buckets are full is dropped and counted as overflow (with the table at most 1/8
 full, two buckets of 4 hold 8 keys where 1 is expected; every key reported in ``InsertInfo``).
 

@@ -7,8 +7,8 @@ implicit function theorem (``jax.lax.custom_root``), not from unrolling the solv
 Speed on XLA:CPU comes from splitting the correspondence search in two: the candidates of every
 point (the geometry Gaussians of the 2x2x2 voxel block around it) are looked up in T once and
 cached as dense ``(c, 8, m)`` arrays; each Gauss-Newton iteration then picks the best candidate with
-plain arithmetic and gathers its covariance. The lookup is repeated only when a point of the frame has moved by more than a quarter voxel
-since the last one. The solver runs coarse to fine (``TrackConfig.coarse``): it converges on every
+plain arithmetic and gathers its covariance. The lookup is repeated only when a point of the frame
+may have moved by more than a quarter voxel since the last one. The solver runs coarse to fine (``TrackConfig.coarse``): it converges on every
 3rd point first, so that the steps on the full cloud start next to its solution; and it lengthens
 updates that keep shrinking the same way (``TrackConfig.extrapolation``, :func:`_stretch`).
 """
