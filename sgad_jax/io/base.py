@@ -204,15 +204,15 @@ class Dataset:
         every frame before it has been yielded.
         """
         with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="sgad-read") as pool:
-            pending = collections.deque(pool.submit(self.__getitem__, i) for i in range(start, min(start + ahead + 1, len(self))))
-            nxt = start + len(pending)
+            pending, nxt = collections.deque(), start
             try:
-                while pending:
-                    sample = pending.popleft().result()
-                    if nxt < len(self):
+                while True:
+                    while nxt < len(self) and len(pending) <= ahead:
                         pending.append(pool.submit(self.__getitem__, nxt))
                         nxt += 1
-                    yield sample
+                    if not pending:
+                        return
+                    yield pending.popleft().result()
             finally:
                 for future in pending:
                     future.cancel()
