@@ -32,6 +32,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--track-only", action="store_true", help="run the geometry branch (tracking) alone")
     r.add_argument("--save-renders", action="store_true", help="write every frame's rendered colour and depth to OUT/renders/")
     r.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a config field, e.g. --set track.stride=10 (repeatable)")
+    r.add_argument("--holdout-every", type=int, default=0, metavar="N", help="hold frames i > 0, i %% N == 0 out of mapping and score them from the scene afterwards (nvs_* metrics)")
+    r.add_argument("--finetune", type=int, default=0, metavar="ITERS", help="refine the merged map for ITERS steps after the sequence, then score the held-out views again")
     r.add_argument("--devices", type=int, default=None, help="map on N devices of this host (on CPU: N host devices); default: all (CPU: 1)")
     r.add_argument("--checkpoint-every", type=int, default=25, metavar="N", help="checkpoint the run every N frames in OUT/checkpoints (0: never; default 25)")
     r.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint (same config and data)")
@@ -95,12 +97,13 @@ def main(argv: list[str] | None = None) -> int:
         result = pipeline.run(
             cfg, args.out, track_only=args.track_only, save_renders=args.save_renders, progress=not args.quiet,
             resume=args.resume, checkpoint_every=args.checkpoint_every, devices=args.devices,
+            holdout_every=args.holdout_every, finetune=args.finetune,
         )
     except (ConfigError, DatasetError) as err:
         print(f"sgad-jax: error: {err}", file=sys.stderr)
         return 2
     m = result.metrics
-    keys = ("frames", "ate_rmse_cm", "ate_mean_cm", "track_ms_median", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "map_s_per_frame", "compile_s", "peak_rss_mb")
+    keys = ("frames", "ate_rmse_cm", "ate_mean_cm", "track_ms_median", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "nvs_psnr_before_finetune", "nvs_psnr", "nvs_ssim", "nvs_lpips", "map_s_per_frame", "compile_s", "peak_rss_mb")
     summary = {k: m[k] for k in keys if k in m}
     import jax
 

@@ -97,10 +97,35 @@ class MapConfig:
     weight_depth: float = 1.0
     learn_offset: bool = True  # False: Gaussians stay at the measured depth (the paper's ablation)
     offset_at_invalid: bool = False  # True: also learn the offsets of Gaussians where depth was not measured (see README)
+    # Frames mapped together: within a batch, not-yet-mapped neighbours contribute their initial
+    # Gaussians; 0: one frame per mapping device (1 on one device: strictly sequential, as the paper).
+    batch: int = 0
+    learn_neighbours: bool = True  # neighbours as learned (paper Eq. 1); False: their initial Gaussians
+    depth_fill: str = "inpaint"  # missing depth for the Gaussians: inpaint (Navier-Stokes) | render (previous frames' Gaussians)
+    radius_init: str = "extent"  # initial radius D / f taken as the 3-sigma extent (extent) or as sigma (sigma)
+    own_order: str = "measured"  # own-view compositing order: measured depth | view (depth with offsets)
+    coverage_mask: bool = True  # neighbour views: fit only pixels the frame's Gaussians cover
     render_init: bool = False  # refine the pose guess by rendering the previous frame's Gaussians
     render_init_iterations: int = 30
     psnr_protocol: str = "whole"  # whole | valid (valid-depth pixels) | zeroed (invalid pixels zeroed)
     host_budget_mb: float = 64.0  # mapped frames' Gaussians kept in host memory; older ones live on disk only
+
+    def __post_init__(self):
+        choices = {"depth_fill": ("inpaint", "render"), "radius_init": ("extent", "sigma"), "own_order": ("measured", "view")}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"map.{name}: choose {' or '.join(allowed)}, got {getattr(self, name)!r}")
+        if self.batch < 0:
+            raise ConfigError(f"map.batch: frames mapped together, >= 1 (0: one per device); got {self.batch}")
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneConfig:
+    """The scene renderer and what is judged with it: held-out views and merged-map refinement."""
+
+    frames: int = 8  # k: mapped frames whose Gaussians render a view (those that best cover it)
+    layers: int = 4  # nearest Gaussians kept per pixel slot when compositing several frames
+    finetune_lr_scale: float = 1.0  # learning rates of the merged-map refinement, times the mapping ones
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,6 +134,7 @@ class SLAMConfig:
     data: DataConfig = DataConfig()
     track: TrackConfig = TrackConfig()
     map: MapConfig = MapConfig()
+    scene: SceneConfig = SceneConfig()
     seed: int = 0
 
 

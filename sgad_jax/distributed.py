@@ -70,9 +70,10 @@ class BatchMapper:
     """Maps ``mesh.size`` tracked frames at once, one per device.
 
     Call it with host (numpy) pytrees stacked along a leading batch axis of length ``size``:
-    ``frames, poses, neighbours, neighbour_poses, present`` as for :func:`sgad_jax.slam.map_step`.
-    It returns this process's part of the result as ``[(batch_index, gaussians)]`` (numpy) and the
-    renders of the whole batch (``rgb``, ``depth``; numpy, gathered from every process).
+    ``frames, poses, neighbour_gaussians, neighbours, neighbour_poses, present`` as for
+    :func:`sgad_jax.slam.map_step`. It returns the whole batch's Gaussians and renders (``rgb``,
+    ``depth``), numpy, gathered from every process: a later frame's neighbours are learned
+    Gaussians that any process may have mapped.
     """
 
     def __init__(self, cfg: MapConfig, intr: Intrinsics, mesh: Mesh | None = None):
@@ -81,8 +82,8 @@ class BatchMapper:
         self.sharding = NamedSharding(self.mesh, P(AXIS))
         step = functools.partial(slam.map_step, cfg, intr=intr)
 
-        def local(frame, pose, neighbours, neighbour_poses, present):
-            g, out, _ = jax.vmap(step)(frame, pose, neighbours, neighbour_poses, present)
+        def local(frame, pose, neighbour_gaussians, neighbours, neighbour_poses, present):
+            g, out, _ = jax.vmap(step)(frame, pose, neighbour_gaussians, neighbours, neighbour_poses, present)
             return g, out.rgb, out.depth
 
         self._fn = jax.jit(jax.shard_map(local, mesh=self.mesh, in_specs=P(AXIS), out_specs=P(AXIS)))
@@ -103,7 +104,7 @@ class BatchMapper:
     def __call__(self, *batch):
         self.compile(*batch)
         g, rgb, depth = self._compiled(*self._global(batch))
-        return _split_local(g), _gather(rgb), _gather(depth)
+        return jax.tree.map(_gather, g), _gather(rgb), _gather(depth)
 
 
 def _gather(x: jax.Array) -> np.ndarray:
@@ -111,16 +112,3 @@ def _gather(x: jax.Array) -> np.ndarray:
     if x.is_fully_addressable:
         return np.asarray(x)
     return np.asarray(multihost_utils.process_allgather(x, tiled=True))
-
-
-def _split_local(tree) -> list[tuple[int, object]]:
-    """``[(batch_index, item)]`` for the batch items this process holds."""
-    leaves, treedef = jax.tree.flatten(tree)
-    out = {}
-    for k, leaf in enumerate(leaves):
-        for shard in leaf.addressable_shards:
-            start = shard.index[0].start or 0
-            data = np.asarray(shard.data)
-            for j in range(data.shape[0]):
-                out.setdefault(start + j, [None] * len(leaves))[k] = data[j]
-    return [(i, jax.tree.unflatten(treedef, items)) for i, items in sorted(out.items())]

@@ -53,11 +53,13 @@ class MapInfo:
     view: Int[Array, " n"]  # the view each iteration used (0: own; -1: none, a missing neighbour's)
 
 
-def init_gaussians(frame: Frame, intr: Intrinsics, *, opacity: float = INIT_OPACITY) -> PixelGaussians:
-    """One Gaussian per pixel at the inpainted depth, radius D / f, zero offset."""
+def init_gaussians(frame: Frame, intr: Intrinsics, *, opacity: float = INIT_OPACITY, radius_init: str = "extent") -> PixelGaussians:
+    """One Gaussian per pixel at the filled depth, zero offset, radius D / f: the pixel's footprint
+    taken as the 3-sigma extent (``radius_init="extent"``) or as sigma (``"sigma"``, 3x larger)."""
     depth = frame.depth_filled
     f = 0.5 * (intr.fx + intr.fy)
-    radius = jnp.maximum(depth, 1e-3) / f
+    scale = splat.RADIUS_SIGMAS if radius_init == "sigma" else 1.0
+    radius = scale * jnp.maximum(depth, 1e-3) / f
     logit = math.log(opacity / (1.0 - opacity))
     return PixelGaussians(
         rgb=frame.rgb,
@@ -152,7 +154,8 @@ def view_loss(
     if background is not None:
         keep = jnp.asarray(k == 0, out.alpha.dtype)
         out = over(out, jax.tree.map(lambda x: keep * x, background))
-    mask = jnp.where(k == 0, 1.0, jnp.asarray(jax.lax.stop_gradient(out.alpha) > COVERAGE, out.alpha.dtype))
+    covered = jax.lax.stop_gradient(out.alpha) > COVERAGE if cfg.coverage_mask else jnp.ones_like(out.alpha, bool)
+    mask = jnp.where(k == 0, 1.0, jnp.asarray(covered, out.alpha.dtype))
     # Depth is compared after normalising by the accumulated opacity: at a partly covered pixel the
     # blended depth is short by (1 - alpha) z, which is not a geometric error.
     depth = out.depth / jnp.maximum(out.alpha, 1e-3)
@@ -177,7 +180,8 @@ def map_frame(
 
     ``background`` is the neighbours' (fixed) Gaussians rendered into the own view; the frame's
     Gaussians are composited over it there, as in :func:`render_frame`. The own view is the
-    frame's camera at ``pose`` (``views.pose[0]`` is not read), rendered by the own-pose path.
+    frame's camera at ``pose``, rendered by the own-pose path (composited in measured-depth order;
+    ``cfg.own_order="view"``: in view-depth order, through ``views.pose[0]``, which must be ``pose``).
     """
     schedule = jnp.asarray(view_schedule(cfg, views.present.shape[0]))
     opt = optimizer(cfg)
@@ -193,7 +197,7 @@ def map_frame(
     def step(carry, k):
         g, state = carry
         loss, grad = jax.value_and_grad(view_loss, argnums=1)(
-            cfg, g, pose, views, k, intr, background, window=window, targets=targets, own_at_pose=True
+            cfg, g, pose, views, k, intr, background, window=window, targets=targets, own_at_pose=cfg.own_order == "measured"
         )
         if not cfg.offset_at_invalid:
             grad = dataclasses.replace(grad, offset=grad.offset * views.valid[0])

@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 import jax.experimental.multihost_utils
 
-from sgad_jax import checkpoint, lie, slam
+from sgad_jax import checkpoint, lie, scene, slam, splat
 from sgad_jax import map as mapping
 from sgad_jax.distributed import BatchMapper, frames_mesh
 from sgad_jax.eval import image
@@ -44,7 +44,7 @@ from sgad_jax.io.base import Dataset, DatasetError
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import write_tum_trajectory
 from sgad_jax.io.store import GaussianStore
-from sgad_jax.types import Frame, make_frame
+from sgad_jax.types import Frame, PixelGaussians, make_frame
 
 
 @dataclasses.dataclass
@@ -98,10 +98,16 @@ def host_frame(sample) -> Frame:
     return jax.tree.map(np.asarray, make_frame(sample.rgb, sample.depth, sample.depth_filled))
 
 
+#: Image scores of a rendered view: the keys of ``per_frame`` records and of the means in ``metrics.json``.
+SCORES = ("psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm")
+
+
 class _Mapper:
     """The appearance branch of the host loop: collects tracked frames (with their ``n`` previous
-    frames as neighbours) into batches of one frame per device, maps each batch at once, scores every
-    frame's render and moves its Gaussians off the devices into a :class:`GaussianStore`."""
+    mapped frames as neighbours) into batches of ``map.batch`` frames, maps each batch (spread over
+    the devices, one frame each), scores every frame's render and moves its Gaussians off the
+    devices into a :class:`GaussianStore`. Afterwards it renders and scores held-out views from the
+    scene (:mod:`sgad_jax.scene`) and refines the merged map."""
 
     def __init__(self, cfg: SLAMConfig, intr, out: pathlib.Path | None, save_renders: bool, mesh=None):
         self.cfg, self.intr = cfg, intr
@@ -112,11 +118,13 @@ class _Mapper:
             self.renders.mkdir(parents=True, exist_ok=True)
         self.store = GaussianStore(None if out is None else out / "gaussians", cfg.map.host_budget_mb)
         self.batch = BatchMapper(cfg.map, intr, mesh)
-        self.recent: list[tuple[Frame, np.ndarray]] = []  # (frame, pose 4x4) of the last n frames, newest first
+        self.batch_size = cfg.map.batch or self.batch.size
+        self.recent: list[tuple[int, Frame, np.ndarray]] = []  # (index, frame, pose 4x4) of the last n mapped frames, newest first
         self.pending: list[tuple] = []  # (index, frame, pose, neighbours) tracked, not yet mapped
+        self.footprints: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # mapped frame -> (pose, footprint points)
         self.refine = None
         self.compile_s = 0.0
-        self.scores: dict[str, list[float]] = {k: [] for k in ("psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm")}
+        self.per_frame: list[dict] = []  # scores of every rendered view, in the order scored
         self.seconds: list[float] = []  # per mapped frame: its batch's time over its batch's frames
         if cfg.map.psnr_protocol not in image.PSNR_PROTOCOLS:
             raise ConfigError(f"map.psnr_protocol must be one of {', '.join(image.PSNR_PROTOCOLS)}, got {cfg.map.psnr_protocol!r}")
@@ -138,7 +146,7 @@ class _Mapper:
         initialised from its RGB-D (so tracking never waits for mapping)."""
         if not self.recent:
             return guess
-        prev, pose_prev = self.recent[0]
+        _, prev, pose_prev = self.recent[0]
         args = (prev, lie.from_matrix(pose_prev), frame, guess)
         if self.refine is None:
             t0 = time.perf_counter()
@@ -155,65 +163,148 @@ class _Mapper:
     def push(self, index: int, frame: Frame, pose: np.ndarray) -> None:
         """Queue a tracked frame; map the queue when it fills a batch."""
         self.pending.append((index, frame, pose, list(self.recent)))
-        self.recent = [(frame, pose)] + self.recent[: self.n - 1]
-        if len(self.pending) == self.batch.size:
+        self.recent = [(index, frame, pose)] + self.recent[: self.n - 1]
+        if len(self.pending) == self.batch_size:
             self.flush()
 
+    def _neighbour_gaussians(self, index: int, frame: Frame) -> PixelGaussians:
+        """A neighbour's fixed Gaussians: its learned ones once mapped (paper Eq. 1), else initial."""
+        if self.cfg.map.learn_neighbours and index in self.store:
+            return self.store.get(index)
+        return jax.tree.map(np.asarray, mapping.init_gaussians(frame, self.intr, radius_init=self.cfg.map.radius_init))
+
     def flush(self) -> None:
-        """Map every queued frame (the last batch padded by repeating its last frame)."""
+        """Map every queued frame: the batch's neighbours are fixed first (frames of the same batch
+        contribute their initial Gaussians), then it runs in chunks of one frame per device (the
+        last chunk padded by repeating its last frame), so results do not depend on the devices."""
         if not self.pending:
             return
-        items = self.pending + [self.pending[-1]] * (self.batch.size - len(self.pending))
         stack = lambda *xs: np.stack(xs)  # noqa: E731
         rows = []
-        for _, frame, pose, have in items:
-            nb = have + [have[0] if have else (frame, pose)] * (self.n - len(have))
+        for _, frame, pose, have in self.pending:
+            nb = have + [have[0] if have else (-1, frame, pose)] * (self.n - len(have))
             rows.append((
                 frame,
                 _pose(pose),
-                jax.tree.map(stack, *[f for f, _ in nb]),
-                jax.tree.map(stack, *[_pose(p) for _, p in nb]),
+                jax.tree.map(stack, *[self._neighbour_gaussians(i, f) for i, f, _ in nb]),
+                jax.tree.map(stack, *[f for _, f, _ in nb]),
+                jax.tree.map(stack, *[_pose(p) for _, _, p in nb]),
                 np.asarray([True] * len(have) + [False] * (self.n - len(have))),
             ))
-        batch = [jax.tree.map(stack, *col) for col in zip(*rows)]
-        self.compile_s += self.batch.compile(*batch)
-        t0 = time.perf_counter()
-        local, rgb, depth = self.batch(*batch)
-        real = len(self.pending)
-        self.seconds += [(time.perf_counter() - t0) / real] * real
-        for j, g in local:
-            if j < real:
-                self.store.put(self.pending[j][0], g)
-        for j, (index, frame, _, _) in enumerate(self.pending):
-            self._score(index, frame, rgb[j], depth[j])
+        size = self.batch.size
+        results = []
+        for c in range(0, len(rows), size):
+            chunk = rows[c : c + size]
+            chunk = chunk + [chunk[-1]] * (size - len(chunk))
+            batch = [jax.tree.map(stack, *col) for col in zip(*chunk)]
+            self.compile_s += self.batch.compile(*batch)
+            t0 = time.perf_counter()
+            gs, rgb, depth = self.batch(*batch)
+            real = min(size, len(rows) - c)
+            self.seconds += [(time.perf_counter() - t0) / real] * real
+            results += [(jax.tree.map(lambda x: x[j], gs), rgb[j], depth[j]) for j in range(real)]
+        for (index, frame, pose, _), (g, rgb, depth) in zip(self.pending, results):
+            self.store.put(index, g)
+            self.footprints[index] = (pose, scene.footprint(frame.depth, frame.valid, pose, self.intr))
+            self._score(index, frame, rgb, depth)
         self.pending = []
 
-    def _score(self, index: int, frame: Frame, rgb: np.ndarray, depth: np.ndarray) -> None:
+    def _score(self, index: int, frame: Frame, rgb: np.ndarray, depth: np.ndarray, *, holdout: bool = False) -> dict:
         rgb = np.clip(rgb, 0.0, 1.0)
         target, valid = frame.rgb, frame.valid
-        self.scores["psnr"].append(float(image.psnr(rgb, target, valid, protocol=self.cfg.map.psnr_protocol)))
-        self.scores["ssim"].append(float(image.ssim(rgb, target)))
+        rec = {"index": index, "holdout": holdout, "psnr": float(image.psnr(rgb, target, valid, protocol=self.cfg.map.psnr_protocol)), "ssim": float(image.ssim(rgb, target))}
         if min(rgb.shape[:2]) >= image.MS_SSIM_MIN_SIZE:
-            self.scores["ms_ssim"].append(float(image.ms_ssim(rgb, target)))
+            rec["ms_ssim"] = float(image.ms_ssim(rgb, target))
         if self.lpips_weights is not None:
-            self.scores["lpips"].append(float(image.lpips(rgb, target, self.lpips_weights)))
+            rec["lpips"] = float(image.lpips(rgb, target, self.lpips_weights))
         if valid.any():
-            self.scores["depth_l1_cm"].append(100.0 * float(np.abs(depth - frame.depth)[valid].mean()))
+            rec["depth_l1_cm"] = 100.0 * float(np.abs(depth - frame.depth)[valid].mean())
         if self.renders is not None:
-            cv2.imwrite(str(self.renders / f"rgb_{index:06d}.png"), cv2.cvtColor((rgb * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
+            prefix = "nvs_" if holdout else ""
+            cv2.imwrite(str(self.renders / f"{prefix}rgb_{index:06d}.png"), cv2.cvtColor((rgb * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
             mm = np.clip(depth * 1000.0 + 0.5, 0, 65535).astype(np.uint16)
-            cv2.imwrite(str(self.renders / f"depth_{index:06d}.png"), mm)
+            cv2.imwrite(str(self.renders / f"{prefix}depth_{index:06d}.png"), mm)
+        if not holdout:
+            self.per_frame.append(rec)
+        return rec
+
+    # The scene: held-out views and the merged-map refinement.
+    def _scene_frames(self, view_pose: np.ndarray) -> list[int]:
+        mapped = sorted(self.footprints)
+        poses = np.stack([self.footprints[i][0] for i in mapped])
+        pts = np.stack([self.footprints[i][1] for i in mapped])
+        return [mapped[j] for j in scene.select_frames(view_pose, poses, pts, self.intr, self.cfg.scene.frames)]
+
+    def _stack_scene(self, chosen: list[int], get) -> tuple:
+        """The chosen frames' (Gaussians, poses, present), padded to ``scene.frames``."""
+        k = self.cfg.scene.frames
+        padded = chosen + [chosen[0]] * (k - len(chosen))
+        gs = jax.tree.map(lambda *x: np.stack(x), *[get(i) for i in padded])
+        poses = jax.tree.map(lambda *x: np.stack(x), *[_pose(self.footprints[i][0]) for i in padded])
+        return gs, poses, np.arange(k) < len(chosen)
+
+    def render_view(self, view_pose: np.ndarray, get=None) -> splat.Render:
+        """The view at camera-to-world ``view_pose`` rendered from the scene's best-covering frames."""
+        gs, poses, present = self._stack_scene(self._scene_frames(view_pose), get or self.store.get)
+        return jax.tree.map(np.asarray, scene.render_scene(gs, poses, _pose(view_pose), self.intr, present, layers=self.cfg.scene.layers))
+
+    def score_holdout(self, holdout: list[int], poses: np.ndarray, source, get=None) -> list[dict]:
+        """Render each held-out frame at its estimated pose from the scene and score it."""
+        if not self.footprints:
+            return []
+        recs = []
+        for index in tqdm(holdout, desc="held-out views", unit="view", disable=not self.main or len(holdout) < 5, file=sys.stderr):
+            out = self.render_view(poses[index], get)
+            recs.append(self._score(index, host_frame(source(index)), out.rgb, out.depth, holdout=True))
+        return recs
+
+    def finetune(self, iterations: int, poses: np.ndarray, source, seed: int) -> dict:
+        """The merged-map refinement: ``iterations`` Adam steps, each on a random mapped frame's
+        view rendered from its ``scene.frames`` best-covering frames, all of whose Gaussians move.
+        Every mapped frame's Gaussians and Adam moments are held in host memory meanwhile; the
+        refined Gaussians replace the stored ones. Returns ``{"finetune_s", "finetune_loss"}``."""
+        self.flush()
+        mapped = sorted(self.footprints)
+        if not mapped or iterations <= 0:
+            return {}
+        params = {i: jax.tree.map(np.asarray, self.store.get(i)) for i in mapped}
+        states = {i: jax.tree.map(np.asarray, scene.adam_init(params[i])) for i in mapped}
+        frames = functools.lru_cache(maxsize=None)(lambda i: host_frame(source(i)))
+        rng = np.random.default_rng(seed)
+        chosen_of = {i: self._scene_frames(poses[i]) for i in mapped}
+        losses, t0 = [], time.perf_counter()
+        k = self.cfg.scene.frames
+        for _ in tqdm(range(iterations), desc="refining the merged map", unit="step", disable=not self.main, file=sys.stderr):
+            view = mapped[rng.integers(len(mapped))]
+            chosen = chosen_of[view]
+            gs, ps, present = self._stack_scene(chosen, params.__getitem__)
+            padded = chosen + [chosen[0]] * (k - len(chosen))
+            st = jax.tree.map(lambda *x: np.stack(x), *[states[i] for i in padded])
+            f = frames(view)
+            gs, st, loss = scene.finetune_step(
+                self.cfg.map, gs, st, ps, present, f.rgb, f.depth, f.valid, _pose(poses[view]), self.intr,
+                layers=self.cfg.scene.layers, lr_scale=self.cfg.scene.finetune_lr_scale,
+            )
+            gs, st = jax.tree.map(np.asarray, (gs, st))
+            for j, i in enumerate(chosen):
+                params[i] = jax.tree.map(lambda x: x[j], gs)
+                states[i] = jax.tree.map(lambda x: x[j], st)
+            losses.append(float(loss))
+        for i in mapped:
+            self.store.put(i, params[i])
+        return {"finetune_iterations": iterations, "finetune_s": time.perf_counter() - t0, "finetune_loss_first": float(np.mean(losses[:50])), "finetune_loss_last": float(np.mean(losses[-50:]))}
 
     def metrics(self) -> dict:
-        mean = lambda xs: float(np.mean(xs)) if xs else None  # noqa: E731
-        out = {k: mean(v) for k, v in self.scores.items()}
+        out = _means(self.per_frame)
         h, w = self.intr.height, self.intr.width
+        mean = lambda xs: float(np.mean(xs)) if xs else None  # noqa: E731
         out.update(
             psnr_protocol=self.cfg.map.psnr_protocol,
             mapped_frames=len(self.seconds),
             map_s_per_frame=mean(self.seconds[self.batch.size :] or self.seconds),
             map_compile_s=self.compile_s,
             devices=self.batch.size,
+            map_batch=self.batch_size,
             gaussians_total=len(self.seconds) * h * w,  # the paper's NUM1
             gaussians_on_devices=self.batch.size * (1 + self.n) * h * w,  # NUM2: each device's frame and its neighbours'
             gaussians_host_mb=self.store.memory_mb,
@@ -222,23 +313,37 @@ class _Mapper:
             out["lpips_missing"] = self.lpips_missing
         return out
 
-    # Checkpoints: the recent frames as fixed-shape arrays, the scores as JSON.
+    # Checkpoints: the recent frames as fixed-shape arrays, the rest as JSON.
     def state(self) -> tuple[dict, dict]:
         self.flush()
         self.store.flush()
         h, w = self.intr.height, self.intr.width
-        recent = self.recent + [(_blank_frame(h, w), np.eye(4))] * (self.n - len(self.recent))
-        arrays = checkpoint.flatten("recent_frames", jax.tree.map(lambda *x: np.stack(x), *[f for f, _ in recent]))
-        arrays["recent_poses"] = np.stack([p for _, p in recent])
-        return arrays, {"recent": len(self.recent), "scores": self.scores, "seconds": self.seconds}
+        recent = self.recent + [(-1, _blank_frame(h, w), np.eye(4))] * (self.n - len(self.recent))
+        arrays = checkpoint.flatten("recent_frames", jax.tree.map(lambda *x: np.stack(x), *[f for _, f, _ in recent]))
+        arrays["recent_poses"] = np.stack([p for _, _, p in recent])
+        mapped = sorted(self.footprints)
+        arrays["footprint_poses"] = np.asarray([self.footprints[i][0] for i in mapped]).reshape(-1, 4, 4)
+        arrays["footprint_points"] = np.asarray([self.footprints[i][1] for i in mapped]).reshape(len(mapped), -1, 3)
+        meta = {"recent": [i for i, _, _ in self.recent], "mapped": mapped, "per_frame": self.per_frame, "seconds": self.seconds}
+        return arrays, meta
 
     def restore(self, arrays: dict, meta: dict) -> None:
         h, w = self.intr.height, self.intr.width
         like = jax.tree.map(lambda *x: np.stack(x), *[_blank_frame(h, w)] * self.n)
         frames = jax.tree.map(np.asarray, checkpoint.unflatten("recent_frames", arrays, like))
-        self.recent = [(jax.tree.map(lambda x: x[k], frames), arrays["recent_poses"][k]) for k in range(meta["recent"])]
-        self.scores = {k: list(v) for k, v in meta["scores"].items()}
+        self.recent = [(i, jax.tree.map(lambda x: x[k], frames), arrays["recent_poses"][k]) for k, i in enumerate(meta["recent"])]
+        self.footprints = {i: (arrays["footprint_poses"][k], arrays["footprint_points"][k]) for k, i in enumerate(meta["mapped"])}
+        self.per_frame = list(meta["per_frame"])
         self.seconds = list(meta["seconds"])
+
+
+def _means(records: list[dict], prefix: str = "") -> dict:
+    """Mean of each score over the records that have it (None when none has)."""
+    out = {}
+    for key in SCORES:
+        xs = [r[key] for r in records if key in r]
+        out[prefix + key] = float(np.mean(xs)) if xs else None
+    return out
 
 
 def _pose(T: np.ndarray) -> lie.SE3:
@@ -258,8 +363,14 @@ class SLAM:
 
     ``add(sample)`` tracks the frame (an :class:`~sgad_jax.io.base.RGBDSample`, or anything with
     ``rgb`` uint8, ``depth`` metres, ``depth_filled``, ``depth_timestamp``) and returns its
-    camera-to-world pose at once; mapping follows in batches of one frame per device. ``finish()``
-    maps what is queued and returns the metrics (without ATE, which needs ground truth).
+    camera-to-world pose at once; mapping follows in batches of ``map.batch`` frames. ``finish()``
+    maps what is queued and returns the metrics (without ATE, which needs ground truth);
+    ``judge_scene()`` then scores the held-out views and refines the merged map.
+
+    With ``holdout_every`` N > 0 the frames of run index ``i > 0``, ``i % N == 0`` are held out:
+    tracked, but never mapped nor anyone's neighbour. ``source(i)`` reads frame ``i`` again (the
+    held-out views and the refinement's training views); without it held-out frames are kept in
+    memory and the refinement is not available.
     """
 
     def __init__(
@@ -272,8 +383,15 @@ class SLAM:
         track_only: bool = False,
         save_renders: bool = False,
         mesh=None,
+        holdout_every: int = 0,
+        source=None,
     ):
+        if holdout_every < 0:
+            raise ConfigError(f"--holdout-every must be >= 0, got {holdout_every}")
         self.cfg, self.intr = cfg, intr
+        self.holdout_every, self.source = holdout_every, source
+        self.holdout: list[int] = []  # run indices of the held-out frames
+        self._held: dict[int, object] = {}  # their samples, when there is no source to read them again
         self.state = slam.init_state(cfg.track, initial_pose)
         self.mapper = None if track_only else _Mapper(cfg, intr, None if out_dir is None else pathlib.Path(out_dir), save_renders, mesh)
         render_init = self.mapper is not None and cfg.map.render_init
@@ -315,11 +433,16 @@ class SLAM:
         else:
             pose = self._track(sample, frame)
         self._last_depth = sample.depth
+        index = len(self.poses)
         self.poses.append(pose)
         self.stamps.append(float(sample.timestamp))
         self.depth_stamps.append(float(sample.depth_timestamp))
-        if self.mapper is not None:
-            self.mapper.push(len(self.poses) - 1, frame, pose)
+        if self.holdout_every and index > 0 and index % self.holdout_every == 0:
+            self.holdout.append(index)
+            if self.source is None and self.mapper is not None:
+                self._held[index] = sample
+        elif self.mapper is not None:
+            self.mapper.push(index, frame, pose)
         return pose
 
     def _track(self, sample, frame) -> np.ndarray:
@@ -364,6 +487,27 @@ class SLAM:
             metrics.update(self.mapper.metrics())
         return metrics
 
+    def judge_scene(self, finetune: int = 0) -> dict:
+        """Score the held-out views rendered from the scene at their estimated poses (``nvs_*``
+        means, and ``nvs_per_frame``); with ``finetune`` > 0 refine the merged map first, keeping
+        the scores before it as ``nvs_*_before_finetune``. Call after :meth:`finish`."""
+        if self.mapper is None:
+            return {}
+        if finetune > 0 and self.source is None:
+            raise ConfigError("the merged-map refinement reads the training views again: give SLAM a source")
+        source = self.source or self._held.__getitem__
+        poses = self.trajectory()
+        out: dict = {"nvs_frames": len(self.holdout)} if self.holdout_every else {}
+        scores = self.mapper.score_holdout(self.holdout, poses, source) if self.holdout else []
+        if finetune > 0:
+            if scores:
+                out.update({f"{k}_before_finetune": v for k, v in _means(scores, "nvs_").items()})
+            out.update(self.mapper.finetune(finetune, poses, source, self.cfg.seed))
+            scores = self.mapper.score_holdout(self.holdout, poses, source) if self.holdout else []
+        if self.holdout_every:
+            out.update(_means(scores, "nvs_"), nvs_per_frame=scores)
+        return out
+
     def trajectory(self) -> np.ndarray:
         """``(f, 4, 4)`` camera-to-world poses at the frames' timestamps.
 
@@ -384,7 +528,7 @@ class SLAM:
             stamps=np.asarray(self.stamps, np.float64),
             depth_stamps=np.asarray(self.depth_stamps, np.float64),
         )
-        meta = {"frames": len(self.poses), "times": self.times, "iters": self.iters}
+        meta = {"frames": len(self.poses), "times": self.times, "iters": self.iters, "holdout": self.holdout}
         if self.mapper is not None:
             more, meta["mapper"] = self.mapper.state()
             arrays.update(more)
@@ -395,16 +539,17 @@ class SLAM:
         self.poses = list(arrays["poses"])
         self.stamps = [float(t) for t in arrays["stamps"]]
         self.depth_stamps = [float(t) for t in arrays["depth_stamps"]]
-        self.times, self.iters = list(meta["times"]), list(meta["iters"])
+        self.times, self.iters, self.holdout = list(meta["times"]), list(meta["iters"]), list(meta["holdout"])
         if self.mapper is not None:
             self.mapper.restore(arrays, meta["mapper"])
 
 
-def _identity(cfg: SLAMConfig, ds: Dataset, track_only: bool) -> dict:
+def _identity(cfg: SLAMConfig, ds: Dataset, track_only: bool, holdout_every: int) -> dict:
     """What a checkpoint must match to be resumed: the config, the mode and the dataset's frames."""
     return {
         "config": json.loads(json.dumps(to_dict(cfg))),
         "track_only": track_only,
+        "holdout_every": holdout_every,
         "dataset": {"name": ds.name, "layout": ds.layout, "frames": len(ds), "timestamps": [float(t) for t in ds.timestamps[:1]] + [float(t) for t in ds.timestamps[-1:]]},
     }
 
@@ -419,13 +564,17 @@ def run(
     resume: bool = False,
     checkpoint_every: int = 0,
     devices: int | None = None,
+    holdout_every: int = 0,
+    finetune: int = 0,
 ) -> RunResult:
     """Run SLAM over ``cfg.data`` and write the outputs to ``out_dir`` (if given).
 
     With ``checkpoint_every`` N > 0 (and an ``out_dir``) the run is checkpointed every N frames in
     ``out_dir/checkpoints``; ``resume`` continues from the newest checkpoint there (the config and
     dataset must be the same) instead of starting over. Mapping uses ``devices`` devices of each
-    process (default: all; see :mod:`sgad_jax.distributed`).
+    process (default: all; see :mod:`sgad_jax.distributed`). ``holdout_every`` N > 0 holds every
+    N-th frame out of mapping and scores it from the scene afterwards (``nvs_*`` in the metrics);
+    ``finetune`` > 0 refines the merged map for that many steps before (see :class:`SLAM`).
 
     Raises:
         DatasetError: on bad input (after writing whatever was computed before it).
@@ -434,7 +583,7 @@ def run(
     ds = open_dataset(cfg.data)
     out = None if out_dir is None else pathlib.Path(out_dir)
     main = jax.process_index() == 0
-    identity = _identity(cfg, ds, track_only)
+    identity = _identity(cfg, ds, track_only, holdout_every)
     ckpt_root = None if out is None or jax.process_count() > 1 else out / "checkpoints"
     if resume and ckpt_root is None:
         raise ConfigError("--resume needs --out (and a single-process run)")
@@ -453,7 +602,10 @@ def run(
     if out is not None and jax.process_count() > 1:
         jax.experimental.multihost_utils.sync_global_devices("sgad_jax: outputs cleared")
     mesh = None if track_only else frames_mesh(devices)
-    system = SLAM(cfg, ds.intrinsics, initial_pose=initial_pose(ds), out_dir=out, track_only=track_only, save_renders=save_renders, mesh=mesh)
+    system = SLAM(
+        cfg, ds.intrinsics, initial_pose=initial_pose(ds), out_dir=out, track_only=track_only, save_renders=save_renders,
+        mesh=mesh, holdout_every=holdout_every, source=ds.__getitem__,
+    )
     start = 0
     if restored is not None:
         system.restore(restored[0], restored[1]["run"])
@@ -482,6 +634,8 @@ def run(
 
     metrics = {"frames": len(system), "dataset": ds.name, "layout": ds.layout}
     run_metrics = system.finish()
+    if not stopped:
+        run_metrics.update(system.judge_scene(finetune))
     poses_np = system.trajectory()
     stamps_np = np.asarray(system.stamps, np.float64)
     gt = ds.gt_poses[: len(poses_np)]
@@ -498,12 +652,21 @@ def run(
     metrics.update(processes=jax.process_count(), peak_rss_mb=peak_rss_mb(), rss_mb_by_frame=rss_trace, config=to_dict(cfg))
     if stopped:
         metrics["stopped"] = stopped
+    if system.mapper is not None:
+        metrics["per_frame"] = sorted(system.mapper.per_frame + metrics.pop("nvs_per_frame", []), key=lambda r: r["index"])
     if out is not None and main:
         out.mkdir(parents=True, exist_ok=True)
         write_tum_trajectory(out / "trajectory.txt", stamps_np, poses_np)
-        tmp = out / "metrics.json.tmp"
-        tmp.write_text(json.dumps(metrics, indent=2))
-        os.replace(tmp, out / "metrics.json")
+        intr = ds.intrinsics
+        _write_json(out / "cameras.json", {"width": intr.width, "height": intr.height, "fx": float(intr.fx), "fy": float(intr.fy), "cx": float(intr.cx), "cy": float(intr.cy)})
+        _write_json(out / "metrics.json", metrics)
     if stopped:
         raise DatasetError(stopped)
     return RunResult(poses=poses_np, timestamps=stamps_np, metrics=metrics)
+
+
+def _write_json(path: pathlib.Path, data: dict) -> None:
+    """Write ``data`` as JSON atomically (temporary name, then rename)."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    os.replace(tmp, path)

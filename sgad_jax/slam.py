@@ -79,25 +79,30 @@ def map_step(
     cfg: MapConfig,
     frame: Frame,
     pose: lie.SE3,
+    neighbour_gaussians: PixelGaussians,
     neighbours: Frame,
     neighbour_poses: lie.SE3,
     present: Bool[Array, " n"],
     intr: Intrinsics,
 ) -> tuple[PixelGaussians, splat.Render, mapping.MapInfo]:
-    """Map one tracked frame and render its view.
+    """Map one tracked frame and render its view (SGAD-SLAM Eq. 1).
 
-    ``neighbours`` (frames and poses) are stacked with a fixed count ``n``; ``present`` marks the
-    real ones (the first frames of a run have fewer). The neighbours' Gaussians, fixed during the
-    frame's mapping, are their initial ones (:func:`sgad_jax.map.init_gaussians`): so a frame's
-    mapping depends on tracked frames and poses only, never on another frame's mapping, and any set
-    of tracked frames can be mapped at once (``vmap``, devices, hosts) with the same result.
-    Returns the frame's Gaussians, its rendered view (own Gaussians over the neighbours') and the
-    mapping record.
+    ``neighbours`` (frames, their Gaussians and poses) are stacked with a fixed count ``n``;
+    ``present`` marks the real ones (the first frames of a run have fewer). The neighbours'
+    Gaussians are fixed: their learned ones when they were mapped before (the paper), their initial
+    ones (:func:`sgad_jax.map.init_gaussians`) when they are mapped in the same batch; the caller
+    chooses, so any set of tracked frames can be mapped at once (``vmap``, devices, hosts).
+    With ``cfg.depth_fill == "render"`` the frame's missing depth is the neighbours' rendered depth
+    where they cover the pixel (inpainted elsewhere). Returns the frame's Gaussians, its rendered
+    view (own Gaussians over the neighbours') and the mapping record.
     """
-    neighbour_gaussians = jax.vmap(mapping.init_gaussians, in_axes=(0, None))(neighbours, intr)
     hide = jnp.where(present, 0.0, -1e4)[:, None, None]
     neighbour_gaussians = dataclasses.replace(neighbour_gaussians, opacity_logit=neighbour_gaussians.opacity_logit + hide)
     background = splat.render(neighbour_gaussians, neighbour_poses, pose, intr, layers=1)
+    if cfg.depth_fill == "render":
+        covered = background.alpha > mapping.COVERAGE
+        seen = background.depth / jnp.maximum(background.alpha, 1e-3)
+        frame = dataclasses.replace(frame, depth_filled=jnp.where(frame.valid, frame.depth, jnp.where(covered, seen, frame.depth_filled)))
     views = mapping.Views(
         rgb=jnp.concatenate([frame.rgb[None], neighbours.rgb]),
         depth=jnp.concatenate([frame.depth[None], neighbours.depth]),
@@ -105,5 +110,6 @@ def map_step(
         pose=jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), pose, neighbour_poses),
         present=jnp.concatenate([jnp.ones(1, bool), present]),
     )
-    g, info = mapping.map_frame(cfg, mapping.init_gaussians(frame, intr), pose, views, intr, background)
+    g0 = mapping.init_gaussians(frame, intr, radius_init=cfg.radius_init)
+    g, info = mapping.map_frame(cfg, g0, pose, views, intr, background)
     return g, mapping.render_frame(g, pose, background, intr), info

@@ -1,0 +1,166 @@
+"""The scene as a radiance field: render any pose from the mapped frames that cover it.
+
+A scene is the set of every mapped frame's learned pixel-aligned Gaussians at its pose. A view is
+rendered from the ``k`` mapped frames that best cover it (:func:`select_frames`, on the host),
+their Gaussians binned together into ``layers`` depth-ordered slots per pixel and composited front
+to back in true depth order (:func:`render_scene`: pure, jitted, fixed shapes).
+
+:func:`finetune_step` is one Adam step of the merged-map refinement (the paper fine-tunes the merged
+map before judging novel views): a training view rendered from its ``k`` frames, whose Gaussians
+are all trainable.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from sgad_jax import lie, losses, splat
+from sgad_jax.config import MapConfig
+from sgad_jax.types import Intrinsics, PixelGaussians
+
+#: Footprint samples per frame: a grid of this many rows and columns of its depth image.
+FOOTPRINT_GRID = (12, 16)
+
+
+@functools.partial(jax.jit, static_argnames=("layers", "window"))
+def render_scene(
+    gs: PixelGaussians,
+    poses: lie.SE3,
+    view_pose: lie.SE3,
+    intr: Intrinsics,
+    present: Bool[Array, " k"] | None = None,
+    *,
+    layers: int = 4,
+    window: int = 3,
+) -> splat.Render:
+    """Colour, depth and opacity of the view at camera-to-world ``view_pose`` rendered from the
+    Gaussians of ``k`` frames ``gs`` (stacked ``(k, h, w)``) at camera-to-world ``poses``.
+
+    Each pixel slot keeps the ``layers`` nearest Gaussians whose centre rounds onto it, so a
+    surface hidden behind ``layers`` others is dropped: with ``k`` frames seeing one opaque surface
+    about ``k`` Gaussians share a slot on it, a few of which already saturate its opacity.
+    ``present`` (``(k,)``) hides frames that are padding.
+    """
+    if present is not None:
+        hide = jnp.where(present, 0.0, -1e4)[:, None, None]
+        gs = dataclasses.replace(gs, opacity_logit=gs.opacity_logit + hide)
+    return splat.render(gs, poses, view_pose, intr, layers=layers, window=window)
+
+
+def footprint(depth: np.ndarray, valid: np.ndarray, pose: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """``(m, 3)`` world points of a grid of a frame's valid depth pixels (NaN where invalid): what
+    :func:`select_frames` projects into a view to judge how much of it the frame sees."""
+    h, w = depth.shape
+    gv, gu = FOOTPRINT_GRID
+    v = np.linspace(0, h - 1, gv).round().astype(int)
+    u = np.linspace(0, w - 1, gu).round().astype(int)
+    vv, uu = np.meshgrid(v, u, indexing="ij")
+    z = np.where(valid[vv, uu], depth[vv, uu], np.nan)
+    fx, fy, cx, cy = intr.as_tuple()
+    p = np.stack([(uu - cx) / fx * z, (vv - cy) / fy * z, z], -1).reshape(-1, 3)
+    return p @ pose[:3, :3].T + pose[:3, 3]
+
+
+def select_frames(view_pose: np.ndarray, poses: np.ndarray, footprints: np.ndarray, intr: Intrinsics, k: int) -> np.ndarray:
+    """Indices (into ``poses``) of the at most ``k`` frames that best cover the view, best first.
+
+    A frame's score is the share of its footprint (``(f, m, 3)`` world points) that projects into
+    the view in front of it, times the cosine between the two optical axes (clipped at 0): a frame
+    looking at the same surface from the same side. Ties go to the nearer camera.
+    """
+    if len(poses) == 0:
+        return np.zeros(0, int)
+    T_cw = np.linalg.inv(view_pose)
+    p = footprints @ T_cw[:3, :3].T + T_cw[:3, 3]  # (f, m, 3) in the view's camera
+    z = p[..., 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        fx, fy, cx, cy = intr.as_tuple()
+        u, v = fx * p[..., 0] / z + cx, fy * p[..., 1] / z + cy
+        inside = (z > splat.NEAR) & (u >= -0.5) & (u < intr.width - 0.5) & (v >= -0.5) & (v < intr.height - 0.5)
+    counted = np.isfinite(footprints[..., 0]).sum(1)
+    overlap = inside.sum(1) / np.maximum(counted, 1)
+    cos = np.clip(poses[:, :3, 2] @ view_pose[:3, 2], 0.0, 1.0)
+    dist = np.linalg.norm(poses[:, :3, 3] - view_pose[:3, 3], axis=1)
+    score = overlap * cos
+    order = np.lexsort((dist, -score))
+    return order[: min(k, int((score > 0).sum()) or 1)]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class AdamState:
+    """Per-frame Adam moments of the merged-map refinement (``count``: the frame's own steps)."""
+
+    mu: PixelGaussians
+    nu: PixelGaussians
+    count: Float[Array, "*b"]
+
+
+def adam_init(g: PixelGaussians) -> AdamState:
+    zeros = jax.tree.map(jnp.zeros_like, g)
+    return AdamState(mu=zeros, nu=zeros, count=jnp.zeros(g.depth.shape[:-2]))
+
+
+def _learning_rates(cfg: MapConfig, scale: float) -> PixelGaussians:
+    return PixelGaussians(
+        rgb=cfg.lr_rgb * scale,
+        log_radius=cfg.lr_radius * scale,
+        opacity_logit=cfg.lr_opacity * scale,
+        offset=cfg.lr_offset * scale if cfg.learn_offset else 0.0,
+        depth=0.0,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "layers", "lr_scale"))
+def finetune_step(
+    cfg: MapConfig,
+    gs: PixelGaussians,
+    state: AdamState,
+    poses: lie.SE3,
+    present: Bool[Array, " k"],
+    rgb: Float[Array, "h w 3"],
+    depth: Float[Array, "h w"],
+    valid: Bool[Array, "h w"],
+    view_pose: lie.SE3,
+    intr: Intrinsics,
+    *,
+    layers: int = 4,
+    lr_scale: float = 1.0,
+) -> tuple[PixelGaussians, AdamState, Float[Array, ""]]:
+    """One Adam step of the merged-map refinement: the mapping loss of the training view (``rgb``,
+    ``depth``, ``valid`` at ``view_pose``) rendered from frames ``gs`` (``(k, h, w)``), whose
+    Gaussians all move (padding frames, ``present`` False, do not). Learning rates are the
+    mapping's times ``lr_scale``; the measured depth stays fixed, the offset too unless learned."""
+
+    def loss_fn(g):
+        out = render_scene(g, poses, view_pose, intr, present, layers=layers)
+        # depth normalised by the accumulated opacity, as in mapping (partial cover is not a depth error)
+        d = out.depth / jnp.maximum(out.alpha, 1e-3)
+        return losses.mapping_loss(out.rgb, d, rgb, depth, valid, weight_l1=cfg.weight_l1, weight_ssim=cfg.weight_ssim, weight_depth=cfg.weight_depth)
+
+    loss, grad = jax.value_and_grad(loss_fn)(gs)
+    if not cfg.offset_at_invalid:
+        grad = dataclasses.replace(grad, offset=jnp.where(gs.depth > 0, grad.offset, 0.0))
+    b1, b2, eps = 0.9, 0.999, 1e-8
+    count = state.count + present
+    c = count[:, None, None]
+    mu = jax.tree.map(lambda m, g: b1 * m + (1 - b1) * g, state.mu, grad)
+    nu = jax.tree.map(lambda n, g: b2 * n + (1 - b2) * g * g, state.nu, grad)
+    lr = _learning_rates(cfg, lr_scale)
+
+    def update(p, m, n, a):
+        cc = c[..., None] if p.ndim == 4 else c
+        step = a * (m / (1 - b1**jnp.maximum(cc, 1))) / (jnp.sqrt(n / (1 - b2**jnp.maximum(cc, 1))) + eps)
+        keep = present.reshape((-1,) + (1,) * (p.ndim - 1))
+        return jnp.where(keep, p - step, p)
+
+    new = jax.tree.map(update, gs, mu, nu, lr)
+    keep = lambda a, b: jnp.where(present.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
+    state = AdamState(mu=jax.tree.map(keep, mu, state.mu), nu=jax.tree.map(keep, nu, state.nu), count=count)
+    return new, state, loss
