@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     import jax
     import jax.numpy as jnp
 
-    from sgad_jax import lie, slam, splat
+    from sgad_jax import lie, scene, slam, splat
     from sgad_jax import map as mapping
     from sgad_jax.config import DataConfig, MapConfig
     from sgad_jax.io.datasets import open_dataset
@@ -125,6 +125,12 @@ def main(argv: list[str] | None = None) -> int:
             for key, fn in ((f"neighbours2_{size}_fwd", nb_fwd), (f"neighbours2_{size}_fwd_bwd", nb_bwd)):
                 compile_s[key], t = _timed(fn, gs, repeats=args.repeats)
                 out[key + "_ms"] = 1000 * t
+            # The scene renderer: k = 8 frames (the three read, repeated at their poses) into a view.
+            k8 = jax.tree.map(lambda x: jnp.concatenate([x, x, x[:2]]), gs)
+            p8 = jax.tree.map(lambda x: jnp.concatenate([x, x, x[:2]]), ps)
+            key = f"scene_{size}_k8_fwd"
+            compile_s[key], t = _timed(lambda g: scene.render_scene(g, p8, poses[2], intr), k8, repeats=args.repeats)
+            out[key + "_ms"] = 1000 * t
             nb_poses = jax.tree.map(stack, poses[1], poses[0])
 
             def frame_view(gs):  # the current frame (index 2) over its neighbours
@@ -141,9 +147,10 @@ def main(argv: list[str] | None = None) -> int:
             stack = lambda *xs: jnp.stack(xs)  # noqa: E731
             nb = jax.tree.map(stack, frames[1], frames[0])
             nb_poses = jax.tree.map(stack, poses[1], poses[0])
-            step = jax.jit(lambda f, p, n, np_: slam.map_step(cfg, f, p, n, np_, jnp.ones(2, bool), intr))
+            nb_gs = jax.tree.map(stack, *[mapping.init_gaussians(f, intr) for f in (frames[1], frames[0])])
+            step = jax.jit(lambda f, p, g, n, np_: slam.map_step(cfg, f, p, g, n, np_, jnp.ones(2, bool), intr))
             key = f"map_frame_{size}"
-            compile_s[key], t = _timed(step, frames[2], poses[2], nb, nb_poses, repeats=max(1, args.repeats // 2))
+            compile_s[key], t = _timed(step, frames[2], poses[2], nb_gs, nb, nb_poses, repeats=max(1, args.repeats // 2))
             out[key + "_s"] = t
     out["compile_s"] = sum(compile_s.values())
     out["compile_s_by_entry"] = compile_s

@@ -22,6 +22,7 @@ from sgad_jax.distributed import BatchMapper
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import read_tum_trajectory
 from sgad_jax.io.store import GaussianStore
+from sgad_jax.map import init_gaussians
 from sgad_jax.pipeline import SLAM, host_frame, initial_pose, run
 from sgad_jax.types import PixelGaussians
 
@@ -63,23 +64,26 @@ def test_batch_mapper_matches_map_step():
     poses = [jax.tree.map(np.asarray, lie.from_matrix(ds.gt_poses[i])) for i in range(3)]
     stack = lambda *xs: np.stack(xs)  # noqa: E731
     nb = jax.tree.map(stack, frames[1], frames[0])
+    nb_gs = jax.tree.map(stack, *[jax.tree.map(np.asarray, init_gaussians(f, intr)) for f in (frames[1], frames[0])])
     nb_poses = jax.tree.map(stack, poses[1], poses[0])
     present = np.array([True, False])
-    batch = [jax.tree.map(lambda x: x[None], t) for t in (frames[2], poses[2], nb, nb_poses, present)]
+    batch = [jax.tree.map(lambda x: x[None], t) for t in (frames[2], poses[2], nb_gs, nb, nb_poses, present)]
     mapper = BatchMapper(cfg.map, intr)
-    local, rgb, depth = mapper(*batch)
-    g_ref, out_ref, _ = jax.jit(lambda *a: slam.map_step(cfg.map, *a, intr))(frames[2], poses[2], nb, nb_poses, present)
-    assert [j for j, _ in local] == [0]
-    for a, b in zip(jax.tree.leaves(local[0][1]), jax.tree.leaves(g_ref)):
+    gs, rgb, depth = mapper(*batch)
+    g_ref, out_ref, _ = jax.jit(lambda *a: slam.map_step(cfg.map, *a, intr))(frames[2], poses[2], nb_gs, nb, nb_poses, present)
+    for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[0], gs)), jax.tree.leaves(g_ref)):
         np.testing.assert_allclose(a, np.asarray(b), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(rgb[0], np.asarray(out_ref.rgb), atol=1e-5)
     np.testing.assert_allclose(depth[0], np.asarray(out_ref.depth), atol=1e-5)
 
 
 def test_two_devices_and_two_processes_match_one(tmp_path):
-    """`--devices 2` and a 2-process localhost run give the 1-device trajectory and metrics."""
-    one = _cli("--out", str(tmp_path / "one"), "--devices", "1")
-    two = _cli("--out", str(tmp_path / "two"), "--devices", "2")
+    """With one `map.batch`, `--devices 2` and a 2-process localhost run give the 1-device
+    trajectory and metrics (a batch of 2 runs in two chunks on one device); a later batch's
+    neighbours are learned Gaussians, some mapped by the other process."""
+    batch = ("--set", "map.batch=2")
+    one = _cli("--out", str(tmp_path / "one"), "--devices", "1", *batch)
+    two = _cli("--out", str(tmp_path / "two"), "--devices", "2")  # map.batch follows the devices
     _finish(one), _finish(two)
     port = _free_port()
     procs = [_cli("--out", str(tmp_path / "mp"), "--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(k)) for k in (1, 0)]
@@ -89,7 +93,7 @@ def test_two_devices_and_two_processes_match_one(tmp_path):
     assert ref["devices"] == 1 and ref["mapped_frames"] == 8
     for name, devices, processes in (("two", 2, 1), ("mp", 2, 2)):
         poses, m = _results(tmp_path / name)
-        assert m["devices"] == devices and m["processes"] == processes
+        assert m["devices"] == devices and m["processes"] == processes and m["map_batch"] == 2
         np.testing.assert_allclose(poses, ref_poses, atol=1e-5)
         assert abs(m["psnr"] - ref["psnr"]) < 0.01
         for key in ("ssim", "lpips", "depth_l1_cm"):

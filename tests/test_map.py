@@ -193,7 +193,8 @@ def test_map_step_compiles_once_for_a_sequence(room):
     stack = lambda *xs: jnp.stack(xs)  # noqa: E731
     for i, present in ((1, [True, False]), (2, [True, True])):
         nb = jax.tree.map(stack, frames[i - 1], frames[0])
+        nb_gs = jax.tree.map(stack, *[mapping.init_gaussians(f, intr) for f in (frames[i - 1], frames[0])])
         nb_poses = jax.tree.map(stack, poses[i - 1], poses[0])
-        _, out, _ = step(frames[i], poses[i], nb, nb_poses, jnp.asarray(present))
+        _, out, _ = step(frames[i], poses[i], nb_gs, nb, nb_poses, jnp.asarray(present))
         assert np.isfinite(np.asarray(out.rgb)).all()
     chex.clear_trace_counter()

@@ -1,0 +1,164 @@
+"""The scene renderer against the dense reference renderer, frame selection, the merged-map
+refinement's Adam step against optax, and a held-out-view run end to end."""
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from sgad_jax import lie, scene, splat, splat_ref
+from sgad_jax import map as mapping
+from sgad_jax.cli import main
+from sgad_jax.config import MapConfig
+from sgad_jax.types import Intrinsics, PixelGaussians
+
+H, W = 10, 14
+
+
+def _intr(dtype=jnp.float64) -> Intrinsics:
+    return Intrinsics(fx=dtype(13.0), fy=dtype(14.0), cx=dtype(6.6), cy=dtype(4.7), width=W, height=H)
+
+
+def _frames(k: int, seed: int) -> PixelGaussians:
+    rng = np.random.default_rng(seed)
+    f = lambda *s: jnp.asarray(rng.uniform(*s, size=(k, H, W)))  # noqa: E731
+    return PixelGaussians(
+        rgb=jnp.asarray(rng.uniform(0, 1, (k, H, W, 3))), log_radius=jnp.log(f(0.1, 0.4)),
+        opacity_logit=f(-1.0, 3.0), offset=f(-0.1, 0.1), depth=f(1.0, 3.0),
+    )
+
+
+def _slot_counts(gs, poses, view, intr, window=3) -> int:
+    """The most Gaussians whose centre rounds onto one slot (what ``layers`` must hold)."""
+    attrs = splat.project_frames(gs, poses, view, intr)
+    u, v = np.round(np.asarray(attrs[0])).astype(int), np.round(np.asarray(attrs[1])).astype(int)
+    keep = np.asarray(attrs[2]) > splat.NEAR
+    _, counts = np.unique(np.stack([u[keep], v[keep]]), axis=1, return_counts=True)
+    return int(counts.max())
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_render_scene_matches_the_dense_reference(seed):
+    """Values and vector-Jacobian products (colours, opacities, offsets, radii, the view pose) of
+    three overlapping frames, with enough layers that no Gaussian is dropped."""
+    with jax.enable_x64(True):
+        intr = _intr()
+        gs = _frames(3, seed)
+        poses = lie.exp(jnp.asarray(np.random.default_rng(seed + 10).normal(0, 0.04, (3, 6))))
+        view = lie.exp(jnp.asarray(np.random.default_rng(seed + 20).normal(0, 0.04, 6)))
+        layers = _slot_counts(gs, poses, view, intr)
+        assert 2 <= layers <= 12
+        fast = scene.render_scene(gs, poses, view, intr, layers=layers)
+        ref = splat_ref.render(gs, poses, view, intr)
+        for a, b in zip(fast, ref):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-9)
+
+        rng = np.random.default_rng(seed + 30)
+        ct = [jnp.asarray(rng.normal(size=x.shape)) for x in ref]
+        pick = lambda g: (g.rgb, g.opacity_logit, g.offset, g.log_radius)  # noqa: E731
+
+        def vjp(render, g, xi):
+            out = render(dataclasses.replace(gs, rgb=g[0], opacity_logit=g[1], offset=g[2], log_radius=g[3]), lie.exp(xi) @ view)
+            return sum(jnp.vdot(o, c) for o, c in zip(out, ct))
+
+        xi0 = jnp.zeros(6)
+        got = jax.grad(vjp, argnums=(1, 2))(lambda g, v: scene.render_scene(g, poses, v, intr, layers=layers), pick(gs), xi0)
+        want = jax.grad(vjp, argnums=(1, 2))(lambda g, v: splat_ref.render(g, poses, v, intr), pick(gs), xi0)
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-9)
+
+
+def test_render_scene_hides_padding_frames():
+    with jax.enable_x64(True):
+        intr = _intr()
+        gs = _frames(3, 5)
+        poses = lie.exp(jnp.asarray(np.random.default_rng(5).normal(0, 0.04, (3, 6))))
+        view = lie.exp(jnp.zeros(6))
+        two = jax.tree.map(lambda x: x[:2], gs), jax.tree.map(lambda x: x[:2], poses)
+        padded = scene.render_scene(gs, poses, view, intr, jnp.array([True, True, False]), layers=12)
+        ref = splat_ref.render(*two, view, intr)
+        for a, b in zip(padded, ref):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-9)
+
+
+def test_select_frames_prefers_frames_seeing_the_view():
+    """Cameras along a wall: the view's own neighbourhood wins, a camera facing away and one whose
+    footprint is off to the side do not count."""
+    intr = Intrinsics(fx=50.0, fy=50.0, cx=31.5, cy=23.5, width=64, height=48)
+    depth, valid = np.full((48, 64), 2.0, np.float32), np.ones((48, 64), bool)
+    poses, pts = [], []
+    for x in np.linspace(-2.0, 2.0, 9):  # looking down +z at a wall 2 m away
+        T = np.eye(4)
+        T[0, 3] = x
+        poses.append(T)
+        pts.append(scene.footprint(depth, valid, T, intr))
+    away = np.diag([-1.0, 1.0, -1.0, 1.0])  # at the origin, looking down -z
+    poses.append(away)
+    pts.append(scene.footprint(depth, valid, away, intr))
+    view = np.eye(4)
+    view[0, 3] = 0.1
+    chosen = scene.select_frames(view, np.stack(poses), np.stack(pts), intr, 3)
+    assert list(chosen) == [4, 5, 3]  # the cameras at x = 0, 0.5, -0.5
+    assert 9 not in scene.select_frames(view, np.stack(poses), np.stack(pts), intr, 10)
+
+
+def test_finetune_step_is_adam_on_the_present_frames():
+    """One refinement step equals optax's Adam with the mapping's learning rates on the present
+    frames' Gaussians (measured depth fixed), and leaves a padding frame as it was."""
+    intr = _intr(jnp.float32)
+    gs = jax.tree.map(lambda x: x.astype(jnp.float32), _frames(2, 3))
+    poses = lie.exp(jnp.asarray(np.random.default_rng(3).normal(0, 0.03, (2, 6)), jnp.float32))
+    present = jnp.array([True, False])
+    rng = np.random.default_rng(4)
+    rgb = jnp.asarray(rng.uniform(0, 1, (H, W, 3)), jnp.float32)
+    depth = jnp.asarray(rng.uniform(1, 3, (H, W)), jnp.float32)
+    valid = jnp.ones((H, W), bool)
+    view = lie.exp(jnp.zeros(6, jnp.float32))
+    cfg = MapConfig(offset_at_invalid=True)
+    new, state, loss = scene.finetune_step(cfg, gs, scene.adam_init(gs), poses, present, rgb, depth, valid, view, intr, layers=6)
+
+    def loss_fn(g):
+        out = scene.render_scene(g, poses, view, intr, present, layers=6)
+        return mapping.losses.mapping_loss(out.rgb, out.depth / jnp.maximum(out.alpha, 1e-3), rgb, depth, valid)
+
+    grad = jax.grad(loss_fn)(gs)
+    opt = mapping.optimizer(cfg)
+    first = jax.tree.map(lambda x: x[0], gs)
+    upd, _ = opt.update(jax.tree.map(lambda x: x[0], grad), opt.init(first), first)
+    want = optax.apply_updates(first, upd)
+    for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[0], new)), jax.tree.leaves(want)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+    for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[1], new)), jax.tree.leaves(jax.tree.map(lambda x: x[1], gs))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert np.asarray(state.count).tolist() == [1.0, 0.0] and np.isfinite(float(loss))
+
+
+def test_held_out_views_end_to_end(tmp_path, capsys):
+    """`--holdout-every 4 --finetune 3 --save-renders` on the synthetic scene: held-out frames are
+    tracked (in the trajectory) but get no Gaussians, are rendered from the scene and scored before
+    and after the refinement, and their renders are written under the nvs_ names."""
+    out = tmp_path / "nvs"
+    args = ["run", "--quiet", "--out", str(out), "--holdout-every", "4", "--finetune", "3", "--save-renders", "--checkpoint-every", "0"]
+    for kv in ("data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=9", "map.iterations=3", "scene.frames=3"):
+        args += ["--set", kv]
+    assert main(args) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    held = [4, 8]
+    assert m["frames"] == 9 and m["nvs_frames"] == 2 and m["mapped_frames"] == 7
+    assert len((out / "trajectory.txt").read_text().strip().splitlines()) == 1 + 9
+    stored = sorted(p.name for p in (out / "gaussians").glob("*.npz"))
+    assert stored == [f"frame_{i:06d}.npz" for i in range(9) if i not in held]
+    for key in ("nvs_psnr", "nvs_ssim", "nvs_lpips", "nvs_depth_l1_cm", "nvs_psnr_before_finetune"):
+        assert key in m and (m[key] is None or np.isfinite(m[key])), key
+    assert 10.0 < m["nvs_psnr"] < m["psnr"]  # a real image, below the training views' self-fit
+    assert [r["index"] for r in m["per_frame"] if r["holdout"]] == held
+    assert [r["index"] for r in m["per_frame"] if not r["holdout"]] == [i for i in range(9) if i not in held]
+    for i in held:
+        assert (out / "renders" / f"nvs_rgb_{i:06d}.png").is_file() and (out / "renders" / f"nvs_depth_{i:06d}.png").is_file()
+        assert not (out / "renders" / f"rgb_{i:06d}.png").exists()
+    cams = json.loads((out / "cameras.json").read_text())
+    assert (cams["width"], cams["height"]) == (80, 60)
