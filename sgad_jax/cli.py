@@ -77,8 +77,11 @@ def export_ply(run_dir, voxel=None, out=None) -> int:
 def draw_plots(run_dir, compare: int = 3) -> int:
     from sgad_jax.io.plots import plot_run
 
-    for path in plot_run(run_dir, compare=compare):
+    written, notes = plot_run(run_dir, compare=compare)
+    for path in written:
         print(f"sgad-jax plots: wrote {path}", file=sys.stderr)
+    for note in notes:
+        print(f"sgad-jax plots: {note}", file=sys.stderr)
     return 0
 
 

@@ -133,3 +133,23 @@ class Run:
     def per_frame(self) -> list[dict]:
         """``metrics.json``'s ``per_frame`` list (empty when the run did not write one)."""
         return list(self.metrics.get("per_frame") or [])
+
+
+def read_render(root, index: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Frame ``index``'s saved render: colour (h, w, 3) float32 in [0, 1] (8-bit PNG) and depth
+    (h, w) float32 metres (16-bit millimetre PNG; None if absent)."""
+    import cv2
+
+    root = pathlib.Path(root)
+    rgb_path, depth_path = root / "renders" / f"rgb_{index:06d}.png", root / "renders" / f"depth_{index:06d}.png"
+    bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise DatasetError(f"{rgb_path}: missing or not an image (renders are written by `run --save-renders`)")
+    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+    depth = None
+    if depth_path.exists():
+        mm = cv2.imread(str(depth_path), cv2.IMREAD_UNCHANGED)
+        if mm is None or mm.dtype != np.uint16:
+            raise DatasetError(f"{depth_path}: not a 16-bit depth image")
+        depth = mm.astype(np.float32) / 1000.0
+    return rgb, depth
