@@ -20,6 +20,7 @@ import pathlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from sgad_jax.eval import image
 from sgad_jax.eval.ate import align_umeyama
@@ -99,6 +100,7 @@ def plot_series(path, index, values, *, ylabel: str, title: str, marked=None, ma
         ax.plot(index[m], values[m], "o", mfc="none", mec="tab:orange", ms=8, mew=1.5, label=marked_label)
         ax.legend(loc="best", fontsize=9)
     ax.set_xlabel("frame (run index)")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)
     ax.set_title(title, fontsize=11)
@@ -147,7 +149,7 @@ def _psnr_rows(run: Run) -> tuple[list[dict], str]:
         target = f.rgb.astype(np.float32) / 255.0
         valid = f.depth > 0
         rows.append({"index": i, "psnr": float(image.psnr(rgb, target, valid, protocol=protocol)), "holdout": False})
-    return rows, f"renders/ ({protocol} protocol)"
+    return rows, f"renders/, {protocol} protocol"
 
 
 def plot_run(run_dir, *, compare: int = 3) -> tuple[list[pathlib.Path], list[str]]:
