@@ -1,4 +1,6 @@
-"""Command line: ``sgad-jax run [--config PRESET_OR_PATH] [--data PATH] [--out DIR] ...``.
+"""Command line: ``sgad-jax run [--config PRESET_OR_PATH] [--data PATH] [--out DIR] ...``, and for
+a finished run's folder ``sgad-jax export RUN_DIR`` (3DGS ``.ply``), ``sgad-jax eval RUN_DIR``
+(metrics recomputed from its files) and ``sgad-jax plots RUN_DIR`` (pictures).
 
 User mistakes (bad paths, unknown layouts, unreadable images, bad overrides) print one line naming
 the file and the problem, and exit with status 2; nothing computed before the error is lost.
@@ -41,11 +43,70 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--num-processes", type=int, default=None, help="multi-process run: number of processes (or $JAX_NUM_PROCESSES)")
     r.add_argument("--process-id", type=int, default=None, help="multi-process run: this process's id (or $JAX_PROCESS_ID)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--export-ply", action="store_true", help="after the run, write the merged Gaussians to OUT/gaussians.ply (as `sgad-jax export`)")
+    r.add_argument("--plots", action="store_true", help="after the run, draw OUT/trajectory.png and OUT/plots/ (as `sgad-jax plots`)")
     r.add_argument(
         "--compile-cache", default=None, metavar="DIR",
         help="keep compiled programs in DIR for later runs ('off': do not); default: $JAX_COMPILATION_CACHE_DIR, else " + DEFAULT_CACHE,
     )
+    _add_run_dir_commands(sub)
     return p
+
+
+def _add_run_dir_commands(sub) -> None:
+    """The subcommands that read a finished run's folder."""
+    e = sub.add_parser("export", help="write a finished run's merged Gaussians as a 3D Gaussian Splatting .ply")
+    e.add_argument("run_dir", metavar="RUN_DIR", help="the --out folder of a finished run")
+    e.add_argument("--voxel", type=float, default=None, metavar="V", help="merge cell in metres, one Gaussian per cell (0: keep all); default: the run's export.voxel times its data.downscale")
+    e.add_argument("--out", default=None, metavar="PLY", help="output file (default: RUN_DIR/gaussians.ply)")
+    v = sub.add_parser("eval", help="recompute a finished run's metrics from its files; writes RUN_DIR/eval.json and report.md")
+    v.add_argument("run_dir", metavar="RUN_DIR", help="the --out folder of a finished run")
+    v.add_argument("--psnr-protocol", default=None, choices=("whole", "valid", "zeroed"), help="PSNR over the whole image, over valid-depth pixels, or with invalid pixels zeroed in both (default: the run's map.psnr_protocol)")
+    v.add_argument("--frames", default=None, metavar="SEL", help="frames to score, as run indices: 'all' (default), 'A:B[:S]' (Python slice), or a comma list '0,5,9'")
+    q = sub.add_parser("plots", help="draw a finished run's trajectory and per-frame plots (RUN_DIR/trajectory.png, RUN_DIR/plots/)")
+    q.add_argument("run_dir", metavar="RUN_DIR", help="the --out folder of a finished run")
+    q.add_argument("--compare", type=int, default=3, metavar="N", help="side-by-side render / ground truth / error images of N frames (default 3; needs renders/)")
+
+
+def export_ply(run_dir, voxel=None, out=None) -> int:
+    from sgad_jax.io.ply import export_run
+
+    path, info = export_run(run_dir, voxel, out)
+    print(f"sgad-jax export: kept {info.kept} of {info.total} Gaussians ({info.frames} frames; {info.total - info.visible} transparent or behind their camera dropped; voxel {info.voxel:g} m) -> {path}", file=sys.stderr)
+    return 0
+
+
+def draw_plots(run_dir, compare: int = 3) -> int:
+    from sgad_jax.io.plots import plot_run
+
+    written, notes = plot_run(run_dir, compare=compare)
+    for path in written:
+        print(f"sgad-jax plots: wrote {path}", file=sys.stderr)
+    for note in notes:
+        print(f"sgad-jax plots: {note}", file=sys.stderr)
+    return 0
+
+
+def evaluate(run_dir, psnr_protocol=None, frames=None) -> int:
+    from sgad_jax.eval.run_eval import evaluate_run
+
+    result = evaluate_run(run_dir, psnr_protocol=psnr_protocol, frames=frames)
+    keys = ("frames", "ate_rmse_cm", "ate_mean_cm", "rpe_rmse_cm", "psnr", "ssim", "depth_l1_cm")
+    print(json.dumps({k: result[k] for k in keys if k in result}))
+    print(f"wrote {run_dir}/eval.json and {run_dir}/report.md", file=sys.stderr)
+    return 0
+
+
+def _run_dir_command(args) -> int:
+    try:
+        if args.command == "export":
+            return export_ply(args.run_dir, args.voxel, args.out)
+        if args.command == "plots":
+            return draw_plots(args.run_dir, args.compare)
+        return evaluate(args.run_dir, args.psnr_protocol, args.frames)
+    except (ConfigError, DatasetError) as err:
+        print(f"sgad-jax {args.command}: error: {err}", file=sys.stderr)
+        return 2
 
 
 def use_compile_cache(choice: str | None) -> None:
@@ -80,6 +141,8 @@ def resolve_config(preset=None, data=None, *, start=None, stride=None, max_frame
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if args.command != "run":
+        return _run_dir_command(args)
     try:
         from sgad_jax import distributed  # before anything starts JAX's backends
 
@@ -110,6 +173,17 @@ def main(argv: list[str] | None = None) -> int:
     if jax.process_index() == 0:
         print(json.dumps(summary))
         print(f"wrote {args.out}/trajectory.txt and {args.out}/metrics.json", file=sys.stderr)
+        # after the run, from its files, exactly as the subcommands on a finished run
+        try:
+            if args.export_ply and args.track_only:
+                print("sgad-jax: --export-ply skipped: a --track-only run has no map", file=sys.stderr)
+            elif args.export_ply:
+                export_ply(args.out)
+            if args.plots:
+                draw_plots(args.out)
+        except (ConfigError, DatasetError) as err:
+            print(f"sgad-jax: error: {err}", file=sys.stderr)
+            return 2
     return 0
 
 

@@ -129,6 +129,16 @@ class SceneConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class ExportConfig:
+    """The merged map written by ``--export-ply`` / ``sgad-jax export`` (see ``sgad_jax.io.ply``)."""
+
+    # Merge cell (metres at data.downscale=1, multiplied by the downscale): one Gaussian per cell; 0 keeps all.
+    # 5 mm is a 640-wide camera's pixel footprint at about 3 m, so a frame's own coverage keeps its
+    # spacing over indoor depths while the frames re-covering the same surface are merged away.
+    voxel: float = 0.005
+
+
+@dataclasses.dataclass(frozen=True)
 class SLAMConfig:
     name: str = "default"
     data: DataConfig = DataConfig()
@@ -136,6 +146,7 @@ class SLAMConfig:
     map: MapConfig = MapConfig()
     scene: SceneConfig = SceneConfig()
     seed: int = 0
+    export: ExportConfig = ExportConfig()
 
 
 class ConfigError(ValueError):
