@@ -23,7 +23,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from sgad_jax import slam
+from sgad_jax import slam, splat
 from sgad_jax.config import ConfigError, MapConfig
 from sgad_jax.types import Intrinsics
 
@@ -71,8 +71,8 @@ class BatchMapper:
 
     Call it with host (numpy) pytrees stacked along a leading batch axis of length ``size``:
     ``frames, poses, neighbour_gaussians, neighbours, neighbour_poses, present`` as for
-    :func:`sgad_jax.slam.map_step`. It returns the whole batch's Gaussians and renders (``rgb``,
-    ``depth``), numpy, gathered from every process: a later frame's neighbours are learned
+    :func:`sgad_jax.slam.map_step`. It returns the whole batch's Gaussians and renders (``rgb`` and
+    the surface's ``depth``, :func:`sgad_jax.splat.surface_depth`), numpy, gathered from every process: a later frame's neighbours are learned
     Gaussians that any process may have mapped.
     """
 
@@ -84,7 +84,7 @@ class BatchMapper:
 
         def local(frame, pose, neighbour_gaussians, neighbours, neighbour_poses, present):
             g, out, _ = jax.vmap(step)(frame, pose, neighbour_gaussians, neighbours, neighbour_poses, present)
-            return g, out.rgb, out.depth
+            return g, out.rgb, splat.surface_depth(out)
 
         self._fn = jax.jit(jax.shard_map(local, mesh=self.mesh, in_specs=P(AXIS), out_specs=P(AXIS)))
         self._compiled = None

@@ -121,7 +121,7 @@ class _Mapper:
         self.batch_size = cfg.map.batch or self.batch.size
         self.recent: list[tuple[int, Frame, np.ndarray]] = []  # (index, frame, pose 4x4) of the last n mapped frames, newest first
         self.pending: list[tuple] = []  # (index, frame, pose, neighbours) tracked, not yet mapped
-        self.footprints: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # mapped frame -> (pose, footprint points)
+        self.scene = scene.Scene(cfg.scene, intr, self.store.get)  # the mapped frames, for rendering any view
         self.refine = None
         self.compile_s = 0.0
         self.per_frame: list[dict] = []  # scores of every rendered view, in the order scored
@@ -204,58 +204,35 @@ class _Mapper:
             self.seconds += [(time.perf_counter() - t0) / real] * real
             results += [(jax.tree.map(lambda x: x[j], gs), rgb[j], depth[j]) for j in range(real)]
         for (index, frame, pose, _), (g, rgb, depth) in zip(self.pending, results):
-            self.store.put(index, g)
-            self.footprints[index] = (pose, scene.footprint(frame.depth, frame.valid, pose, self.intr))
+            self.store.put(index, g, pose)
+            self.scene.add(index, pose, frame.depth, frame.valid)
             self._score(index, frame, rgb, depth)
         self.pending = []
 
-    def _score(self, index: int, frame: Frame, rgb: np.ndarray, depth: np.ndarray, *, holdout: bool = False) -> dict:
+    def _score(self, index: int, frame: Frame, rgb: np.ndarray, depth: np.ndarray, *, kind: str = "") -> dict:
+        """Score a render; ``kind`` "" (a training view, kept in ``per_frame``), "nvs" (held out)
+        or "test" (a dataset's test view): its renders are written as ``{kind}_rgb_XXXXXX.png``."""
         rgb = np.clip(rgb, 0.0, 1.0)
-        target, valid = frame.rgb, frame.valid
-        rec = {"index": index, "holdout": holdout, "psnr": float(image.psnr(rgb, target, valid, protocol=self.cfg.map.psnr_protocol)), "ssim": float(image.ssim(rgb, target))}
-        if min(rgb.shape[:2]) >= image.MS_SSIM_MIN_SIZE:
-            rec["ms_ssim"] = float(image.ms_ssim(rgb, target))
-        if self.lpips_weights is not None:
-            rec["lpips"] = float(image.lpips(rgb, target, self.lpips_weights))
-        if valid.any():
-            rec["depth_l1_cm"] = 100.0 * float(np.abs(depth - frame.depth)[valid].mean())
+        scores = image.score_view(rgb, depth, frame.rgb, frame.depth, frame.valid, protocol=self.cfg.map.psnr_protocol, lpips_weights=self.lpips_weights)
+        rec = {"index": index, "holdout": kind != "", **scores}
         if self.renders is not None:
-            prefix = "nvs_" if holdout else ""
+            prefix = f"{kind}_" if kind else ""
             cv2.imwrite(str(self.renders / f"{prefix}rgb_{index:06d}.png"), cv2.cvtColor((rgb * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
             mm = np.clip(depth * 1000.0 + 0.5, 0, 65535).astype(np.uint16)
             cv2.imwrite(str(self.renders / f"{prefix}depth_{index:06d}.png"), mm)
-        if not holdout:
+        if not kind:
             self.per_frame.append(rec)
         return rec
 
     # The scene: held-out views and the merged-map refinement.
-    def _scene_frames(self, view_pose: np.ndarray) -> list[int]:
-        mapped = sorted(self.footprints)
-        poses = np.stack([self.footprints[i][0] for i in mapped])
-        pts = np.stack([self.footprints[i][1] for i in mapped])
-        return [mapped[j] for j in scene.select_frames(view_pose, poses, pts, self.intr, self.cfg.scene.frames)]
-
-    def _stack_scene(self, chosen: list[int], get) -> tuple:
-        """The chosen frames' (Gaussians, poses, present), padded to ``scene.frames``."""
-        k = self.cfg.scene.frames
-        padded = chosen + [chosen[0]] * (k - len(chosen))
-        gs = jax.tree.map(lambda *x: np.stack(x), *[get(i) for i in padded])
-        poses = jax.tree.map(lambda *x: np.stack(x), *[_pose(self.footprints[i][0]) for i in padded])
-        return gs, poses, np.arange(k) < len(chosen)
-
-    def render_view(self, view_pose: np.ndarray, get=None) -> splat.Render:
-        """The view at camera-to-world ``view_pose`` rendered from the scene's best-covering frames."""
-        gs, poses, present = self._stack_scene(self._scene_frames(view_pose), get or self.store.get)
-        return jax.tree.map(np.asarray, scene.render_scene(gs, poses, _pose(view_pose), self.intr, present, layers=self.cfg.scene.layers))
-
-    def score_holdout(self, holdout: list[int], poses: np.ndarray, source, get=None) -> list[dict]:
-        """Render each held-out frame at its estimated pose from the scene and score it."""
-        if not self.footprints:
+    def score_views(self, indices: list[int], poses: np.ndarray, source, kind: str = "nvs") -> list[dict]:
+        """Render each view ``source(i)`` at camera-to-world ``poses[i]`` from the scene and score it."""
+        if not len(self.scene):
             return []
         recs = []
-        for index in tqdm(holdout, desc="held-out views", unit="view", disable=not self.main or len(holdout) < 5, file=sys.stderr):
-            out = self.render_view(poses[index], get)
-            recs.append(self._score(index, host_frame(source(index)), out.rgb, out.depth, holdout=True))
+        for index in tqdm(indices, desc=f"{kind} views", unit="view", disable=not self.main or len(indices) < 5, file=sys.stderr):
+            out = self.scene.render(poses[index])
+            recs.append(self._score(index, host_frame(source(index)), out.rgb, np.asarray(splat.surface_depth(out)), kind=kind))
         return recs
 
     def finetune(self, iterations: int, poses: np.ndarray, source, seed: int) -> dict:
@@ -264,22 +241,20 @@ class _Mapper:
         Every mapped frame's Gaussians and Adam moments are held in host memory meanwhile; the
         refined Gaussians replace the stored ones. Returns ``{"finetune_s", "finetune_loss"}``."""
         self.flush()
-        mapped = sorted(self.footprints)
+        mapped = sorted(self.scene.poses)
         if not mapped or iterations <= 0:
             return {}
         params = {i: jax.tree.map(np.asarray, self.store.get(i)) for i in mapped}
         states = {i: jax.tree.map(np.asarray, scene.adam_init(params[i])) for i in mapped}
         frames = functools.lru_cache(maxsize=None)(lambda i: host_frame(source(i)))
         rng = np.random.default_rng(seed)
-        chosen_of = {i: self._scene_frames(poses[i]) for i in mapped}
+        chosen_of = {i: self.scene.frames_for(poses[i]) for i in mapped}
         losses, t0 = [], time.perf_counter()
-        k = self.cfg.scene.frames
         for _ in tqdm(range(iterations), desc="refining the merged map", unit="step", disable=not self.main, file=sys.stderr):
             view = mapped[rng.integers(len(mapped))]
             chosen = chosen_of[view]
-            gs, ps, present = self._stack_scene(chosen, params.__getitem__)
-            padded = chosen + [chosen[0]] * (k - len(chosen))
-            st = jax.tree.map(lambda *x: np.stack(x), *[states[i] for i in padded])
+            gs, ps, present = self.scene.stack(chosen, params.__getitem__)
+            st, _, _ = self.scene.stack(chosen, states.__getitem__)
             f = frames(view)
             gs, st, loss = scene.finetune_step(
                 self.cfg.map, gs, st, ps, present, f.rgb, f.depth, f.valid, _pose(poses[view]), self.intr,
@@ -291,7 +266,7 @@ class _Mapper:
                 states[i] = jax.tree.map(lambda x: x[j], st)
             losses.append(float(loss))
         for i in mapped:
-            self.store.put(i, params[i])
+            self.store.put(i, params[i], self.scene.poses[i])
         return {"finetune_iterations": iterations, "finetune_s": time.perf_counter() - t0, "finetune_loss_first": float(np.mean(losses[:50])), "finetune_loss_last": float(np.mean(losses[-50:]))}
 
     def metrics(self) -> dict:
@@ -321,9 +296,8 @@ class _Mapper:
         recent = self.recent + [(-1, _blank_frame(h, w), np.eye(4))] * (self.n - len(self.recent))
         arrays = checkpoint.flatten("recent_frames", jax.tree.map(lambda *x: np.stack(x), *[f for _, f, _ in recent]))
         arrays["recent_poses"] = np.stack([p for _, _, p in recent])
-        mapped = sorted(self.footprints)
-        arrays["footprint_poses"] = np.asarray([self.footprints[i][0] for i in mapped]).reshape(-1, 4, 4)
-        arrays["footprint_points"] = np.asarray([self.footprints[i][1] for i in mapped]).reshape(len(mapped), -1, 3)
+        mapped, more = self.scene.arrays()
+        arrays.update(more)
         meta = {"recent": [i for i, _, _ in self.recent], "mapped": mapped, "per_frame": self.per_frame, "seconds": self.seconds}
         return arrays, meta
 
@@ -332,7 +306,7 @@ class _Mapper:
         like = jax.tree.map(lambda *x: np.stack(x), *[_blank_frame(h, w)] * self.n)
         frames = jax.tree.map(np.asarray, checkpoint.unflatten("recent_frames", arrays, like))
         self.recent = [(i, jax.tree.map(lambda x: x[k], frames), arrays["recent_poses"][k]) for k, i in enumerate(meta["recent"])]
-        self.footprints = {i: (arrays["footprint_poses"][k], arrays["footprint_points"][k]) for k, i in enumerate(meta["mapped"])}
+        self.scene.restore(meta["mapped"], arrays)
         self.per_frame = list(meta["per_frame"])
         self.seconds = list(meta["seconds"])
 
@@ -498,12 +472,12 @@ class SLAM:
         source = self.source or self._held.__getitem__
         poses = self.trajectory()
         out: dict = {"nvs_frames": len(self.holdout)} if self.holdout_every else {}
-        scores = self.mapper.score_holdout(self.holdout, poses, source) if self.holdout else []
+        scores = self.mapper.score_views(self.holdout, poses, source)
         if finetune > 0:
             if scores:
                 out.update({f"{k}_before_finetune": v for k, v in _means(scores, "nvs_").items()})
             out.update(self.mapper.finetune(finetune, poses, source, self.cfg.seed))
-            scores = self.mapper.score_holdout(self.holdout, poses, source) if self.holdout else []
+            scores = self.mapper.score_views(self.holdout, poses, source)
         if self.holdout_every:
             out.update(_means(scores, "nvs_"), nvs_per_frame=scores)
         return out
@@ -647,6 +621,8 @@ def run(
     else:
         metrics.update(ate_rmse_cm=None, ate_mean_cm=None, rpe_rmse_cm=None, rpe_rot_rmse_deg=None)
     metrics.update(run_metrics)
+    if not stopped and system.mapper is not None and ds.layout == "scannetpp":
+        metrics.update(_score_test_views(system, ds, poses_np))
     if restored is not None:
         metrics["resumed_from_frame"] = start
     metrics.update(processes=jax.process_count(), peak_rss_mb=peak_rss_mb(), rss_mb_by_frame=rss_trace, config=to_dict(cfg))
@@ -663,6 +639,30 @@ def run(
     if stopped:
         raise DatasetError(stopped)
     return RunResult(poses=poses_np, timestamps=stamps_np, metrics=metrics)
+
+
+def _score_test_views(system: SLAM, ds: Dataset, est: np.ndarray) -> dict:
+    """A dataset's own test views (ScanNet++ DSLR ``test``) rendered from the scene at their
+    ground-truth poses carried into the estimated trajectory's frame (the SE(3) alignment of the
+    estimated to the ground-truth positions, as ATE aligns): ``test_*`` means and ``test_per_frame``."""
+    from sgad_jax.eval.ate import align_umeyama
+    from sgad_jax.io.datasets import ScanNetPPDataset
+
+    try:
+        test = ScanNetPPDataset(ds.root, dataclasses.replace(ds.cfg, start=0, stride=1, max_frames=0), split="test")
+    except DatasetError as err:
+        return {"test_views": f"not scored: {err}"}
+    gt = ds.gt_poses[: len(est)]
+    ok = np.isfinite(gt).all(axis=(1, 2))
+    if ok.sum() < 3:
+        return {"test_views": "not scored: fewer than 3 frames with ground truth to align the trajectory"}
+    R, t, _ = align_umeyama(est[ok, :3, 3], gt[ok, :3, 3])
+    A = np.eye(4)
+    A[:3, :3], A[:3, 3] = R, t  # estimated frame -> ground-truth frame
+    poses = np.linalg.inv(A)[None] @ test.gt_poses
+    scored = [i for i in range(len(test)) if np.isfinite(poses[i]).all()]
+    recs = system.mapper.score_views(scored, poses, test.__getitem__, kind="test")
+    return {"test_frames": len(recs), **_means(recs, "test_"), "test_per_frame": recs}
 
 
 def _write_json(path: pathlib.Path, data: dict) -> None:

@@ -21,11 +21,15 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from sgad_jax import lie, losses, splat
-from sgad_jax.config import MapConfig
+from sgad_jax.config import MapConfig, SceneConfig
 from sgad_jax.types import Intrinsics, PixelGaussians
 
+#: Coverage scores closer than this count as equal.
+SCORE_STEP = 0.1
 #: Footprint samples per frame: a grid of this many rows and columns of its depth image.
-FOOTPRINT_GRID = (12, 16)
+FOOTPRINT_GRID = (24, 32)
+#: The view's cells that :func:`select_frames` covers.
+VIEW_CELLS = (12, 16)
 
 
 @functools.partial(jax.jit, static_argnames=("layers", "window"))
@@ -68,28 +72,98 @@ def footprint(depth: np.ndarray, valid: np.ndarray, pose: np.ndarray, intr: Intr
 
 
 def select_frames(view_pose: np.ndarray, poses: np.ndarray, footprints: np.ndarray, intr: Intrinsics, k: int) -> np.ndarray:
-    """Indices (into ``poses``) of the at most ``k`` frames that best cover the view, best first.
+    """Indices (into ``poses``) of the at most ``k`` frames that best cover the view, in the order
+    chosen.
 
-    A frame's score is the share of its footprint (``(f, m, 3)`` world points) that projects into
-    the view in front of it, times the cosine between the two optical axes (clipped at 0): a frame
-    looking at the same surface from the same side. Ties go to the nearer camera.
+    Greedy cover: each pick is the frame whose footprint (``(f, m, 3)`` world points) lands in the
+    most cells of a :data:`VIEW_CELLS` grid of the view not yet covered; among equals, the better
+    score (the share of its footprint in the view, in front of it, times the cosine between the
+    optical axes, compared in steps of :data:`SCORE_STEP`), then the nearer camera. So the first
+    frames cover the whole view between them (along a video: frames on both sides of it), the rest
+    add the nearest views of the same surface.
     """
     if len(poses) == 0:
         return np.zeros(0, int)
     T_cw = np.linalg.inv(view_pose)
     p = footprints @ T_cw[:3, :3].T + T_cw[:3, 3]  # (f, m, 3) in the view's camera
     z = p[..., 2]
+    gv, gu = VIEW_CELLS
     with np.errstate(invalid="ignore", divide="ignore"):
         fx, fy, cx, cy = intr.as_tuple()
-        u, v = fx * p[..., 0] / z + cx, fy * p[..., 1] / z + cy
-        inside = (z > splat.NEAR) & (u >= -0.5) & (u < intr.width - 0.5) & (v >= -0.5) & (v < intr.height - 0.5)
+        u, v = fx * p[..., 0] / z + cx + 0.5, fy * p[..., 1] / z + cy + 0.5
+        inside = (z > splat.NEAR) & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
+        cell = np.where(inside, (v * gv // intr.height) * gu + u * gu // intr.width, gv * gu).astype(int)
+    cover = np.zeros((len(poses), gv * gu + 1), bool)
+    cover[np.arange(len(poses))[:, None], cell] = True
+    cover = cover[:, :-1]
     counted = np.isfinite(footprints[..., 0]).sum(1)
-    overlap = inside.sum(1) / np.maximum(counted, 1)
     cos = np.clip(poses[:, :3, 2] @ view_pose[:3, 2], 0.0, 1.0)
+    score = np.floor(inside.sum(1) / np.maximum(counted, 1) * cos / SCORE_STEP)
     dist = np.linalg.norm(poses[:, :3, 3] - view_pose[:3, 3], axis=1)
-    score = overlap * cos
-    order = np.lexsort((dist, -score))
-    return order[: min(k, int((score > 0).sum()) or 1)]
+    left = score > 0
+    covered = np.zeros(gv * gu, bool)
+    chosen = []
+    while len(chosen) < k and left.any():
+        gain = (cover & ~covered).sum(1)
+        order = np.lexsort((dist, -score, -gain))
+        best = next(j for j in order if left[j])
+        chosen.append(best)
+        covered |= cover[best]
+        left[best] = False
+    return np.asarray(chosen or [int(np.argmin(dist))], int)
+
+
+class Scene:
+    """Host-side index of the mapped frames: each frame's pose and footprint, and a ``get(index)``
+    that reads its Gaussians (device, host memory or disk). Renders any view from the
+    ``cfg.frames`` frames that cover it best."""
+
+    def __init__(self, cfg: SceneConfig, intr: Intrinsics, get):
+        self.cfg, self.intr, self.get = cfg, intr, get
+        self.poses: dict[int, np.ndarray] = {}
+        self.points: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def add(self, index: int, pose: np.ndarray, depth: np.ndarray, valid: np.ndarray) -> None:
+        """Index a mapped frame (camera-to-world ``pose``, its measured depth)."""
+        self.poses[index] = np.asarray(pose, np.float64)
+        self.points[index] = footprint(np.asarray(depth), np.asarray(valid), self.poses[index], self.intr)
+
+    def frames_for(self, view_pose: np.ndarray) -> list[int]:
+        """The mapped frames that render the view, best first (:func:`select_frames`)."""
+        mapped = sorted(self.poses)
+        poses = np.stack([self.poses[i] for i in mapped])
+        pts = np.stack([self.points[i] for i in mapped])
+        return [mapped[j] for j in select_frames(view_pose, poses, pts, self.intr, self.cfg.frames)]
+
+    def stack(self, chosen: list[int], get=None) -> tuple[PixelGaussians, lie.SE3, np.ndarray]:
+        """The chosen frames' (Gaussians, poses, present), padded to ``cfg.frames``."""
+        get = get or self.get
+        padded = chosen + [chosen[0]] * (self.cfg.frames - len(chosen))
+        gs = jax.tree.map(lambda *x: np.stack(x), *[get(i) for i in padded])
+        poses = jax.tree.map(lambda *x: np.stack(x), *[lie.from_matrix(self.poses[i]) for i in padded])
+        return gs, poses, np.arange(self.cfg.frames) < len(chosen)
+
+    def render(self, view_pose: np.ndarray) -> splat.Render:
+        """The view at camera-to-world ``view_pose`` (numpy colour, depth, opacity)."""
+        gs, poses, present = self.stack(self.frames_for(view_pose))
+        out = render_scene(gs, poses, lie.from_matrix(view_pose), self.intr, present, layers=self.cfg.layers)
+        return jax.tree.map(np.asarray, out)
+
+    # checkpoints
+    def arrays(self) -> tuple[list[int], dict]:
+        mapped = sorted(self.poses)
+        h, w = FOOTPRINT_GRID
+        return mapped, {
+            "scene_poses": np.asarray([self.poses[i] for i in mapped]).reshape(-1, 4, 4),
+            "scene_points": np.asarray([self.points[i] for i in mapped]).reshape(-1, h * w, 3),
+        }
+
+    def restore(self, mapped: list[int], arrays: dict) -> None:
+        self.poses = {i: arrays["scene_poses"][k] for k, i in enumerate(mapped)}
+        self.points = {i: arrays["scene_points"][k] for k, i in enumerate(mapped)}
 
 
 @jax.tree_util.register_dataclass

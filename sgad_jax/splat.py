@@ -73,6 +73,12 @@ class Render(NamedTuple):
     alpha: Float[Array, "h w"]
 
 
+def surface_depth(r: Render, min_alpha: float = 1e-3) -> Float[Array, "h w"]:
+    """The depth of the rendered surface: the blended depth over the accumulated opacity (a pixel
+    covered at opacity 0.9 would otherwise read 10% too near); 0 where nothing is rendered."""
+    return jnp.where(r.alpha > min_alpha, r.depth / jnp.maximum(r.alpha, min_alpha), 0.0)
+
+
 def rays(g: PixelGaussians, intr: Intrinsics, v0=0, u0=0) -> tuple[Float[Array, "1 w"], Float[Array, "h 1"]]:
     """``(x / z, y / z)`` of the pixel rays of a frame's Gaussians (or of a crop of them whose first
     pixel is (``v0``, ``u0``)): Gaussian (v, u) sits at ``z * (xz[u], yz[v], 1)`` in its camera,

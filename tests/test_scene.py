@@ -162,3 +162,40 @@ def test_held_out_views_end_to_end(tmp_path, capsys):
         assert not (out / "renders" / f"rgb_{i:06d}.png").exists()
     cams = json.loads((out / "cameras.json").read_text())
     assert (cams["width"], cams["height"]) == (80, 60)
+
+
+def test_scannetpp_test_views_are_scored_from_the_scene(tmp_path):
+    """A ScanNet++ DSLR folder made from the synthetic room (6 train, 2 test views between them):
+    the test views are rendered at their ground-truth poses carried into the estimated trajectory's
+    frame, scored as ``test_*`` and written under the test_ names."""
+    import cv2
+
+    from sgad_jax.config import DataConfig, SyntheticConfig
+    from sgad_jax.io.synthetic import SyntheticDataset
+
+    syn = SyntheticDataset(DataConfig(layout="synthetic", synthetic=SyntheticConfig(frames=16, width=160, height=120)))
+    dslr = tmp_path / "scene" / "dslr"
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera axes -> nerfstudio's
+    frames, test = [], []
+    for i in range(0, 16, 2):
+        s = syn[i]
+        name = f"DSC{i:05d}.JPG"
+        (dslr / "undistorted_images").mkdir(parents=True, exist_ok=True)
+        (dslr / "undistorted_depths").mkdir(parents=True, exist_ok=True)
+        assert cv2.imwrite(str(dslr / "undistorted_images" / name), np.ascontiguousarray(s.rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 98])
+        assert cv2.imwrite(str(dslr / "undistorted_depths" / f"DSC{i:05d}.png"), (s.depth * 1000).round().astype(np.uint16))
+        rec = {"file_path": name, "transform_matrix": (flip @ syn.gt_poses[i] @ flip).tolist()}
+        (test if i in (6, 10) else frames).append(rec)
+    fx, fy, cx, cy = syn.intrinsics.as_tuple()
+    meta = dict(w=160, h=120, fl_x=fx, fl_y=fy, cx=cx, cy=cy, camera_model="PINHOLE", frames=frames, test_frames=test)
+    (dslr / "nerfstudio").mkdir()
+    (dslr / "nerfstudio" / "transforms_undistorted.json").write_text(json.dumps(meta))
+    out = tmp_path / "run"
+    args = ["run", "--quiet", "--data", str(tmp_path / "scene"), "--out", str(out), "--save-renders", "--checkpoint-every", "0"]
+    for kv in ("map.iterations=3", "scene.frames=3", "track.stride=2"):
+        args += ["--set", kv]
+    assert main(args) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["frames"] == 6 and m["test_frames"] == 2 and len(m["test_per_frame"]) == 2
+    assert 18.0 < m["test_psnr"] < m["psnr"]
+    assert (out / "renders" / "test_rgb_000000.png").is_file() and (out / "renders" / "test_rgb_000001.png").is_file()

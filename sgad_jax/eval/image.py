@@ -535,3 +535,18 @@ def lpips(
         if weights is None:
             raise LPIPSUnavailable(_unavailable_message(path))
     return _lpips(weights, pred, target)
+
+
+def score_view(rgb, depth, target_rgb, target_depth, valid, *, protocol: str = "whole", lpips_weights=None) -> dict:
+    """Every image metric of one render against its frame (host arrays, colour in [0, 1]):
+    ``psnr`` (under ``protocol``), ``ssim``, ``ms_ssim`` (images of at least
+    :data:`MS_SSIM_MIN_SIZE` px a side), ``lpips`` (with weights), and ``depth_l1_cm`` over
+    valid-depth pixels (when a depth render is given)."""
+    out = {"psnr": float(psnr(rgb, target_rgb, valid, protocol=protocol)), "ssim": float(ssim(rgb, target_rgb))}
+    if min(rgb.shape[:2]) >= MS_SSIM_MIN_SIZE:
+        out["ms_ssim"] = float(ms_ssim(rgb, target_rgb))
+    if lpips_weights is not None:
+        out["lpips"] = float(lpips(rgb, target_rgb, lpips_weights))
+    if depth is not None and valid.any():
+        out["depth_l1_cm"] = 100.0 * float(np.abs(depth - target_depth)[valid].mean())
+    return out

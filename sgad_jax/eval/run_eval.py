@@ -23,6 +23,7 @@ import pathlib
 import numpy as np
 
 from sgad_jax.config import ConfigError
+from sgad_jax import splat
 from sgad_jax.eval import image
 from sgad_jax.eval.ate import ate, rpe
 from sgad_jax.io.base import DatasetError
@@ -66,17 +67,29 @@ def _mean(xs):
     return float(np.mean(xs)) if xs else None
 
 
-def score_frame(rgb: np.ndarray, depth: np.ndarray | None, target_rgb, target_depth, valid, protocol: str) -> dict:
-    """Image metrics of one render against its frame (all inputs host arrays, colour in [0, 1])."""
-    out = {"psnr": float(image.psnr(rgb, target_rgb, valid, protocol=protocol)), "ssim": float(image.ssim(rgb, target_rgb))}
-    if min(rgb.shape[:2]) >= image.MS_SSIM_MIN_SIZE:
-        out["ms_ssim"] = float(image.ms_ssim(rgb, target_rgb))
-    if depth is not None and valid.any():
-        out["depth_l1_cm"] = 100.0 * float(np.abs(depth - target_depth)[valid].mean())
-    return out
+def render_held_out(run: Run, indices: list[int], scene_frames: int | None = None, layers: int | None = None) -> dict:
+    """Held-out views rendered again from the run's stored Gaussians by the scene renderer at
+    their estimated poses (``scene_frames`` and ``layers`` default to the run's ``scene`` config):
+    ``{index: Render}``. Lets the renderer's settings be compared without mapping again."""
+    import dataclasses
+
+    from sgad_jax import scene
+
+    cfg = run.config.scene
+    cfg = dataclasses.replace(cfg, frames=scene_frames or cfg.frames, layers=layers or cfg.layers)
+    sc = scene.Scene(cfg, run.intrinsics, run.gaussians)
+    mapped_at = run.mapping_poses()
+    for i in run.gaussian_frames():
+        f = make_frame(run.dataset[i].rgb, run.dataset[i].depth)
+        sc.add(i, mapped_at[i], np.asarray(f.depth), np.asarray(f.valid))
+    _, poses = run.trajectory
+    return {i: sc.render(poses[i]) for i in indices}
 
 
-def evaluate_run(run_dir, *, psnr_protocol: str | None = None, frames: str | None = None, write: bool = True) -> dict:
+def evaluate_run(
+    run_dir, *, psnr_protocol: str | None = None, frames: str | None = None, write: bool = True,
+    rerender: bool = False, scene_frames: int | None = None, layers: int | None = None,
+) -> dict:
     """Recompute a finished run's metrics from its files; see the module docstring.
 
     Args:
@@ -84,6 +97,8 @@ def evaluate_run(run_dir, *, psnr_protocol: str | None = None, frames: str | Non
         psnr_protocol: ``whole``, ``valid`` or ``zeroed``; None: the run's ``map.psnr_protocol``.
         frames: frame selection (:func:`select_frames`); trajectory metrics use the same frames.
         write: write ``eval.json`` and ``report.md`` into the run folder.
+        rerender: score the held-out views rendered again from the stored Gaussians
+            (:func:`render_held_out`, with ``scene_frames`` and ``layers``) instead of their saved renders.
 
     Returns:
         the contents of ``eval.json``.
@@ -117,18 +132,22 @@ def evaluate_run(run_dir, *, psnr_protocol: str | None = None, frames: str | Non
         result["trajectory_note"] = "no ATE: fewer than 3 selected frames with ground truth"
 
     holdout = {int(r["index"]) for r in run.per_frame if r.get("holdout")}
-    rendered = set(run.render_frames())
+    rendered = set(run.render_frames()) | set(run.render_frames("nvs"))
+    fresh = render_held_out(run, sorted(holdout & set(chosen)), scene_frames, layers) if rerender else {}
     per_frame = []
     for i in chosen:
-        if i not in rendered:
+        if i in fresh:
+            rgb, depth = np.clip(fresh[i].rgb, 0.0, 1.0), np.asarray(splat.surface_depth(fresh[i]))
+        elif i in rendered:
+            rgb, depth = read_render(run.root, i, "nvs" if i in holdout else "")
+        else:
             continue
-        rgb, depth = read_render(run.root, i)
         sample = ds[i]
         f = make_frame(sample.rgb, sample.depth)
         target, target_depth, valid = (np.asarray(x) for x in (f.rgb, f.depth, f.valid))
         if rgb.shape != target.shape:
             raise DatasetError(f"{run.root / 'renders'}: render {i} is {rgb.shape[1]}x{rgb.shape[0]}, the dataset frame {target.shape[1]}x{target.shape[0]} (another downscale?)")
-        per_frame.append({"index": i, "holdout": i in holdout, **score_frame(rgb, depth, target, target_depth, valid, protocol)})
+        per_frame.append({"index": i, "holdout": i in holdout, **image.score_view(rgb, depth, target, target_depth, valid, protocol=protocol)})
     result["rendered_frames"] = len(per_frame)
     if not per_frame:
         result["image_note"] = "no image metrics: no renders of the selected frames (run with --save-renders)"

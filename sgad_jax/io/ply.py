@@ -164,7 +164,7 @@ def merged_gaussians(source, voxel: float | None = None, *, min_opacity: float =
         from sgad_jax.io.rundir import Run
 
         run = Run(source)
-        _, poses = run.trajectory
+        poses = run.mapping_poses()
         intr = run.intrinsics
         indices = run.gaussian_frames()
         if not indices:

@@ -125,9 +125,23 @@ class Run:
         except (OSError, ValueError, KeyError) as err:
             raise DatasetError(f"{path}: unreadable ({err})") from None
 
-    def render_frames(self) -> list[int]:
-        """Run indices of the frames with a saved colour render (``renders/rgb_XXXXXX.png``)."""
-        return sorted(int(p.stem[4:]) for p in (self.root / "renders").glob("rgb_*.png"))
+    def mapping_poses(self) -> np.ndarray:
+        """``(f, 4, 4)`` camera-to-world poses the frames' Gaussians were mapped at: the ``pose``
+        stored with them (on TUM the depth image's, which ``trajectory.txt`` interpolates to the
+        colour image's stamp), else the trajectory's."""
+        poses = self.trajectory[1].copy()
+        for i in self.gaussian_frames():
+            path = self.root / "gaussians" / f"frame_{i:06d}.npz"
+            with np.load(path) as z:
+                if "pose" in z.files and i < len(poses):
+                    poses[i] = z["pose"]
+        return poses
+
+    def render_frames(self, kind: str = "") -> list[int]:
+        """Run indices of the frames with a saved colour render (``renders/rgb_XXXXXX.png``; with
+        ``kind`` "nvs" the held-out views' ``renders/nvs_rgb_XXXXXX.png``)."""
+        prefix = f"{kind}_rgb_" if kind else "rgb_"
+        return sorted(int(p.stem[len(prefix):]) for p in (self.root / "renders").glob(f"{prefix}[0-9]*.png"))
 
     @property
     def per_frame(self) -> list[dict]:
@@ -135,13 +149,14 @@ class Run:
         return list(self.metrics.get("per_frame") or [])
 
 
-def read_render(root, index: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """Frame ``index``'s saved render: colour (h, w, 3) float32 in [0, 1] (8-bit PNG) and depth
-    (h, w) float32 metres (16-bit millimetre PNG; None if absent)."""
+def read_render(root, index: int, kind: str = "") -> tuple[np.ndarray, np.ndarray | None]:
+    """Frame ``index``'s saved render (``kind`` "nvs": a held-out view's): colour (h, w, 3) float32
+    in [0, 1] (8-bit PNG) and depth (h, w) float32 metres (16-bit millimetre PNG; None if absent)."""
     import cv2
 
     root = pathlib.Path(root)
-    rgb_path, depth_path = root / "renders" / f"rgb_{index:06d}.png", root / "renders" / f"depth_{index:06d}.png"
+    prefix = f"{kind}_" if kind else ""
+    rgb_path, depth_path = root / "renders" / f"{prefix}rgb_{index:06d}.png", root / "renders" / f"{prefix}depth_{index:06d}.png"
     bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)
     if bgr is None:
         raise DatasetError(f"{rgb_path}: missing or not an image (renders are written by `run --save-renders`)")

@@ -2,7 +2,8 @@
 
 Each frame's :class:`~sgad_jax.types.PixelGaussians` is one uncompressed ``.npz`` file
 ``frame_XXXXXX.npz`` (XXXXXX: the frame's index in the run; fields ``rgb``, ``log_radius``,
-``opacity_logit``, ``offset``, ``depth``, float32, each ``(h, w[, 3])``), written atomically. The
+``opacity_logit``, ``offset``, ``depth``, float32, each ``(h, w[, 3])``; and ``pose``, the 4x4
+camera-to-world pose the frame was mapped at, when given), written atomically. The
 newest frames stay in memory as well while they fit the budget, so a run's memory does not grow with
 its length.
 """
@@ -39,12 +40,15 @@ class GaussianStore:
         self._bytes = 0
         self._on_disk: set[int] = {int(p.stem[6:]) for p in self.root.glob("frame_*.npz")}
         self.count = 0  # Gaussians put so far
+        self._poses: dict[int, np.ndarray] = {}
 
     def path(self, index: int) -> pathlib.Path:
         return self.root / f"frame_{index:06d}.npz"
 
-    def put(self, index: int, g: PixelGaussians) -> None:
+    def put(self, index: int, g: PixelGaussians, pose: np.ndarray | None = None) -> None:
         g = PixelGaussians(**{k: np.asarray(getattr(g, k), np.float32) for k in FIELDS})
+        if pose is not None:
+            self._poses[index] = np.asarray(pose, np.float64)
         self.count += g.depth.size
         if index in self._memory:
             self._bytes -= _nbytes(self._memory.pop(index))
@@ -81,7 +85,8 @@ class GaussianStore:
         if index in self._on_disk:
             return
         tmp = self.root / f".frame_{index:06d}.{os.getpid()}.npz"
-        np.savez(tmp, **{k: getattr(g, k) for k in FIELDS})
+        extra = {"pose": self._poses[index]} if index in self._poses else {}
+        np.savez(tmp, **{k: getattr(g, k) for k in FIELDS}, **extra)
         os.replace(tmp, self.path(index))
         self._on_disk.add(index)
 
