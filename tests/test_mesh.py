@@ -257,3 +257,96 @@ def test_score_mesh_culling_rules():
     seen_floor = (48 / 40) * (36 / 40)
     assert 1 - floater["mesh_precision"] == pytest.approx(0.16 / (0.16 + seen_floor), rel=0.15)
     assert floater["mesh_recall"] == 1.0
+
+
+# --- the command line on a fabricated run folder --------------------------------------------------
+
+
+def uv_sphere(centre, radius, n=120):
+    """A latitude-longitude triangulation of a sphere (chord error radius * (1 - cos(pi / n)))."""
+    th, ph = np.meshgrid(np.linspace(0, np.pi, n + 1), np.linspace(0, 2 * np.pi, 2 * n + 1), indexing="ij")
+    v = centre + radius * np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3)
+    i = (np.arange(n)[:, None] * (2 * n + 1) + np.arange(2 * n)[None, :]).ravel()
+    f = np.concatenate([np.stack([i, i + 2 * n + 1, i + 2 * n + 2], -1), np.stack([i, i + 2 * n + 2, i + 1], -1)])
+    return v, f
+
+
+def fabricate_sphere_run(root, with_renders=True):
+    """A run folder as the pipeline writes it: trajectory, cameras.json and analytic renders of a sphere."""
+    import cv2
+
+    from sgad_jax.io.export import write_tum_trajectory
+
+    intr = make_intrinsics(200.0, 200.0, 99.5, 74.5, 200, 150)
+    centre, radius = np.array([0.2, -0.1, 0.5]), 0.25
+    eyes = [centre + 1.0 * e for e in np.concatenate([np.eye(3), -np.eye(3)])]
+    poses = np.stack([look_at(e, centre) for e in eyes])
+    root.mkdir(parents=True, exist_ok=True)
+    write_tum_trajectory(root / "trajectory.txt", np.arange(len(poses), dtype=float), poses)
+    (root / "cameras.json").write_text(json.dumps({"width": 200, "height": 150, "fx": 200.0, "fy": 200.0, "cx": 99.5, "cy": 74.5}))
+    if with_renders:
+        (root / "renders").mkdir()
+        for i, T in enumerate(poses):
+            depth, rgb = sphere_depth(T, intr, centre, radius)
+            cv2.imwrite(str(root / "renders" / f"rgb_{i:06d}.png"), cv2.cvtColor((rgb * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
+            cv2.imwrite(str(root / "renders" / f"depth_{i:06d}.png"), (depth * 1000 + 0.5).astype(np.uint16))
+    return intr, poses, centre, radius
+
+
+def test_cli_mesh_and_eval_mesh(tmp_path, capsys):
+    from sgad_jax.cli import main
+
+    run = tmp_path / "run"
+    _, _, centre, radius = fabricate_sphere_run(run)
+    assert main(["mesh", str(run), "--compile-cache", "off"]) == 0
+    info = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert info["voxel_m"] == pytest.approx(0.01) and info["frames"] == 6
+    v, f, c = read_mesh_ply(run / "mesh.ply")
+    assert len(f) == info["faces"] > 1000 and c is not None
+    assert np.abs(np.linalg.norm(v - centre, axis=1) - radius).max() < 0.01
+    write_mesh_ply(tmp_path / "gt.ply", *uv_sphere(centre, radius))
+    (run / "eval.json").write_text(json.dumps({"ate_rmse_cm": 1.5}))
+    assert main(["eval-mesh", str(run), "--gt-mesh", str(tmp_path / "gt.ply"), "--samples", "20000", "--views", "3"]) == 0
+    scores = json.loads((run / "eval.json").read_text())
+    assert scores["ate_rmse_cm"] == 1.5  # merged, not replaced
+    assert scores["mesh_cull_depth"] == "renders"  # no metrics.json: the renders say what was seen
+    assert scores["mesh_f1"] > 0.97 and scores["mesh_accuracy_cm"] < 0.3 and scores["mesh_completion_cm"] < 0.3
+    assert scores["mesh_depth_l1_cm"] < 0.3 and scores["mesh_depth_coverage"] > 0.9
+    # coarser voxels from the command line
+    assert main(["mesh", str(run), "--set", "mesh.voxel=0.02", "--set", "mesh.trunc=0.08"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["voxel_m"] == pytest.approx(0.02)
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["mesh", "{run}"], "--save-renders"),
+        (["mesh", "{tmp}/nowhere"], "run folder not found"),
+        (["mesh", "{run}", "--set", "map.iterations=3"], "only mesh.*"),
+        (["eval-mesh", "{run}", "--gt-mesh", "{tmp}/missing.ply"], "no mesh"),
+    ],
+)
+def test_cli_mesh_errors_one_line(tmp_path, capsys, args, needle):
+    from sgad_jax.cli import main
+
+    run = tmp_path / "run"
+    fabricate_sphere_run(run, with_renders=False)
+    code = main([a.format(run=run, tmp=tmp_path) for a in args])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and needle in err, err
+
+
+def test_run_with_mesh_flag(tmp_path, capsys):
+    """``run --mesh`` on a small synthetic scene saves the renders and fuses them into mesh.ply."""
+    from sgad_jax.cli import main
+
+    out = tmp_path / "run"
+    args = ["run", "--out", str(out), "--max-frames", "4", "--quiet", "--checkpoint-every", "0", "--mesh",
+            "--set", "data.synthetic.width=80", "--set", "data.synthetic.height=60", "--set", "map.iterations=3",
+            "--set", "mesh.voxel=0.05", "--set", "mesh.trunc=0.2"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "mesh.ply" in err
+    assert len(list((out / "renders").glob("depth_*.png"))) == 4
+    v, f, c = read_mesh_ply(out / "mesh.ply")
+    assert len(f) > 100 and np.isfinite(v).all()
