@@ -20,9 +20,8 @@ from sgad_jax.io import run as runio
 from sgad_jax.io.base import DatasetError
 from sgad_jax.io.export import matrix_to_quaternion
 
-#: the radius stored with a Gaussian is its extent in standard deviations (sgad_jax.splat.RADIUS_SIGMAS)
-_FRUSTUMS = 200
-_THUMB_WIDTH = 160
+_FRUSTUMS = 200  # at most this many camera frustums (every k-th frame), so the page stays light
+_THUMB_WIDTH = 160  # pixels of the render shown in a frustum
 
 
 def _viser():
