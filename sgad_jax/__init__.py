@@ -12,11 +12,12 @@ Public API (pure functions over pytrees; see README.md):
 * SLAM steps: :class:`SLAMState`, :func:`init_state`, :func:`track_step`, :func:`map_step`
 * configuration: :class:`SLAMConfig` and its stage configs, :func:`load_preset`
 * a finished run's folder: :mod:`sgad_jax.io.ply` (3DGS export), :mod:`sgad_jax.eval.run_eval`,
-  :mod:`sgad_jax.io.plots`
+  :mod:`sgad_jax.io.plots`, :mod:`sgad_jax.viewer`
+* meshes: :mod:`sgad_jax.mesh` (TSDF fusion, marching cubes), :mod:`sgad_jax.eval.mesh` (scores)
 * host side: :func:`open_dataset`, :func:`run`
 """
 
-from sgad_jax.config import DataConfig, ExportConfig, MapConfig, SLAMConfig, SyntheticConfig, TrackConfig, load_preset
+from sgad_jax.config import DataConfig, ExportConfig, MapConfig, MeshConfig, SLAMConfig, SyntheticConfig, TrackConfig, load_preset
 from sgad_jax.geometry import insert
 from sgad_jax.gicp import frame_points
 from sgad_jax.map import MapInfo, Views, init_gaussians, map_frame, refine_pose
@@ -54,7 +55,7 @@ def run(cfg: SLAMConfig, out_dir=None, **kwargs):
 
 __version__ = "0.1.0"
 __all__ = [
-    "DataConfig", "ExportConfig", "MapConfig", "SLAMConfig", "SyntheticConfig", "TrackConfig", "load_preset",
+    "DataConfig", "ExportConfig", "MapConfig", "MeshConfig", "SLAMConfig", "SyntheticConfig", "TrackConfig", "load_preset",
     "insert", "frame_points", "SLAMState", "init_state", "track_step", "track_cost", "track",
     "transform_cloud", "Frame", "GeometrySet", "InsertInfo", "Intrinsics", "PixelGaussians",
     "PointCloud", "TrackInfo", "empty_geometry", "make_frame", "make_intrinsics", "open_dataset", "run",

@@ -1,6 +1,8 @@
 """Command line: ``sgad-jax run [--config PRESET_OR_PATH] [--data PATH] [--out DIR] ...``, and for
 a finished run's folder ``sgad-jax export RUN_DIR`` (3DGS ``.ply``), ``sgad-jax eval RUN_DIR``
-(metrics recomputed from its files) and ``sgad-jax plots RUN_DIR`` (pictures).
+(metrics recomputed from its files), ``sgad-jax plots RUN_DIR`` (pictures), ``sgad-jax mesh
+RUN_DIR`` (TSDF mesh of the renders), ``sgad-jax eval-mesh RUN_DIR --gt-mesh PLY`` and
+``sgad-jax view RUN_DIR`` (web viewer).
 
 User mistakes (bad paths, unknown layouts, unreadable images, bad overrides) print one line naming
 the file and the problem, and exit with status 2; nothing computed before the error is lost.
@@ -33,6 +35,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--max-frames", type=int, default=None, help="at most N frames")
     r.add_argument("--track-only", action="store_true", help="run the geometry branch (tracking) alone")
     r.add_argument("--save-renders", action="store_true", help="write every frame's rendered colour and depth to OUT/renders/")
+    r.add_argument("--mesh", action="store_true", help="after the run, fuse the renders into OUT/mesh.ply (implies --save-renders; settings: --set mesh.voxel=...)")
     r.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a config field, e.g. --set track.stride=10 (repeatable)")
     r.add_argument("--holdout-every", type=int, default=0, metavar="N", help="hold frames i > 0, i %% N == 0 out of mapping and score them from the scene afterwards (nvs_* metrics)")
     r.add_argument("--finetune", type=int, default=0, metavar="ITERS", help="refine the merged map for ITERS steps after the sequence, then score the held-out views again")
@@ -69,6 +72,25 @@ def _add_run_dir_commands(sub) -> None:
     q = sub.add_parser("plots", help="draw a finished run's trajectory and per-frame plots (RUN_DIR/trajectory.png, RUN_DIR/plots/)")
     q.add_argument("run_dir", metavar="RUN_DIR", help="the --out folder of a finished run")
     q.add_argument("--compare", type=int, default=3, metavar="N", help="side-by-side render / ground truth / error images of N frames (default 3; needs renders/)")
+    m = sub.add_parser("mesh", help="fuse a finished run's renders (--save-renders) into RUN_DIR/mesh.ply (TSDF + marching cubes)")
+    m.add_argument("run_dir", metavar="RUN_DIR")
+    m.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mesh setting, e.g. --set mesh.voxel=0.02 (metres at full resolution)")
+    m.add_argument("--compile-cache", default=None, metavar="DIR", help="as for run")
+    em = sub.add_parser("eval-mesh", help="score RUN_DIR/mesh.ply against a ground-truth mesh; merges the scores into RUN_DIR/eval.json")
+    em.add_argument("run_dir", metavar="RUN_DIR")
+    em.add_argument("--gt-mesh", required=True, metavar="PLY", help="ground-truth mesh (PLY), in the world frame of the run's poses")
+    em.add_argument("--mesh", default=None, metavar="PLY", help="the mesh to score (default: RUN_DIR/mesh.ply)")
+    em.add_argument("--data", default=None, help="the run's dataset folder, if it moved (its measured depth culls the ground truth)")
+    em.add_argument("--threshold", type=float, default=0.01, help="metres, for precision / recall / F1 (default 0.01)")
+    em.add_argument("--samples", type=int, default=200_000, help="points sampled on each surface (default 200000)")
+    em.add_argument("--views", type=int, default=100, help="novel views for depth L1 (default 100)")
+    em.add_argument("--band", type=float, default=0.05, help="metres around the observed surface that count as seen (default 0.05)")
+    em.add_argument("--seed", type=int, default=0)
+    w = sub.add_parser("view", help="serve a finished run (cameras, trajectory, Gaussians, mesh, renders) in a web viewer (viser)")
+    w.add_argument("run_dir", metavar="RUN_DIR")
+    w.add_argument("--port", type=int, default=8080)
+    w.add_argument("--host", default="0.0.0.0", help="interface to listen on (default: all, for a browser on another machine)")
+    w.add_argument("--max-splats", type=int, default=300_000, help="at most this many Gaussians shown (subsampled; default 300000)")
 
 
 def export_ply(run_dir, voxel=None, out=None) -> int:
@@ -106,10 +128,52 @@ def _run_dir_command(args) -> int:
             return export_ply(args.run_dir, args.voxel, args.out)
         if args.command == "plots":
             return draw_plots(args.run_dir, args.compare)
-        return evaluate(args.run_dir, args.psnr_protocol, args.frames, args.rerender, args.scene_frames, args.layers)
+        if args.command == "eval":
+            return evaluate(args.run_dir, args.psnr_protocol, args.frames, args.rerender, args.scene_frames, args.layers)
+        return _mesh_or_view(args)
     except (ConfigError, DatasetError) as err:
         print(f"sgad-jax {args.command}: error: {err}", file=sys.stderr)
         return 2
+
+
+def _mesh_config(run_dir, overrides):
+    """The run's saved config (defaults without one) with ``mesh.*`` overrides applied."""
+    from sgad_jax.config import SLAMConfig
+    from sgad_jax.io.run import run_config
+
+    cfg = run_config(run_dir) or SLAMConfig()
+    for item in overrides:
+        if not item.strip().startswith("mesh."):
+            raise ConfigError(f"--set {item}: only mesh.* settings apply to a finished run")
+    return apply_overrides(cfg, list(overrides))
+
+
+def _make_mesh(run_dir, cfg) -> dict:
+    from sgad_jax.mesh import mesh_run
+
+    return mesh_run(run_dir, cfg.mesh, cfg.data.downscale, log=lambda line: print(f"sgad-jax: {line}", file=sys.stderr))
+
+
+def _mesh_or_view(args) -> int:
+    """``mesh``, ``eval-mesh`` and ``view``."""
+    if args.command == "view":
+        from sgad_jax import viewer
+
+        viewer.serve(args.run_dir, host=args.host, port=args.port, max_splats=args.max_splats)
+        return 0
+    if args.command == "mesh":
+        use_compile_cache(args.compile_cache)
+        print(json.dumps(_make_mesh(args.run_dir, _mesh_config(args.run_dir, args.overrides))))
+    else:
+        from sgad_jax.eval.mesh import eval_mesh_run
+
+        scores = eval_mesh_run(
+            args.run_dir, args.gt_mesh, data=args.data, mesh=args.mesh, threshold=args.threshold,
+            samples=args.samples, views=args.views, band=args.band, seed=args.seed,
+        )
+        print(json.dumps({k: v for k, v in scores.items() if k.startswith("mesh_") and not isinstance(v, str)}))
+        print(f"wrote {args.run_dir}/eval.json", file=sys.stderr)
+    return 0
 
 
 def use_compile_cache(choice: str | None) -> None:
@@ -160,11 +224,18 @@ def main(argv: list[str] | None = None) -> int:
         )
         from sgad_jax import pipeline
 
+        if args.mesh and args.track_only:
+            raise ConfigError("--mesh fuses the renders of the mapping branch: it cannot go with --track-only")
         result = pipeline.run(
-            cfg, args.out, track_only=args.track_only, save_renders=args.save_renders, progress=not args.quiet,
+            cfg, args.out, track_only=args.track_only, save_renders=args.save_renders or args.mesh, progress=not args.quiet,
             resume=args.resume, checkpoint_every=args.checkpoint_every, devices=args.devices,
             holdout_every=args.holdout_every, finetune=args.finetune,
         )
+        import jax
+
+        if args.mesh and jax.process_index() == 0:
+            info = _make_mesh(args.out, cfg)
+            print(f"wrote {info['mesh']} ({info['vertices']} vertices, {info['faces']} faces, {100 * info['voxel_m']:.3g} cm voxels)", file=sys.stderr)
     except (ConfigError, DatasetError) as err:
         print(f"sgad-jax: error: {err}", file=sys.stderr)
         return 2

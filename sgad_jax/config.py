@@ -139,14 +139,27 @@ class ExportConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class MeshConfig:
+    """TSDF fusion of rendered depth and colour, then marching cubes (``sgad_jax.mesh``)."""
+
+    voxel: float = 0.01  # metres at full resolution (the SLAM papers' 1 cm), times data.downscale
+    trunc: float = 0.04  # truncation distance, metres at full resolution (papers: 4 cm), times data.downscale
+    max_weight: float = 0.0  # cap of a voxel's accumulated weight; 0: plain running average
+    max_voxels: int = 1 << 27  # grid budget (~20 bytes a voxel); a larger grid is coarsened, and says so
+    min_depth: float = 0.05  # depth outside [min_depth, max_depth] is not fused
+    max_depth: float = 0.0  # 0: no limit
+
+
+@dataclasses.dataclass(frozen=True)
 class SLAMConfig:
     name: str = "default"
     data: DataConfig = DataConfig()
     track: TrackConfig = TrackConfig()
     map: MapConfig = MapConfig()
     scene: SceneConfig = SceneConfig()
-    seed: int = 0
     export: ExportConfig = ExportConfig()
+    mesh: MeshConfig = MeshConfig()
+    seed: int = 0
 
 
 class ConfigError(ValueError):

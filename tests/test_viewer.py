@@ -1,0 +1,100 @@
+"""``sgad-jax view``: answers HTTP on its port on a headless machine, and fails cleanly on bad input."""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+
+from sgad_jax.io.export import write_tum_trajectory
+from sgad_jax.io.run import write_mesh_ply
+from sgad_jax.types import make_intrinsics
+
+pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+
+
+def fabricate_run(root, frames=3, h=12, w=16):
+    """A run folder as the pipeline writes it: trajectory, cameras.json, Gaussians, one render, a mesh."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    poses = np.tile(np.eye(4), (frames, 1, 1))
+    poses[:, 0, 3] = 0.1 * np.arange(frames)
+    write_tum_trajectory(root / "trajectory.txt", np.arange(frames, dtype=float), poses)
+    (root / "cameras.json").write_text(json.dumps({"width": w, "height": h, "fx": 20.0, "fy": 20.0, "cx": 7.5, "cy": 5.5}))
+    (root / "gaussians").mkdir()
+    for i in range(frames):
+        np.savez(
+            root / "gaussians" / f"frame_{i:06d}.npz",
+            rgb=rng.random((h, w, 3), dtype=np.float32), log_radius=np.full((h, w), np.log(0.02), np.float32),
+            opacity_logit=np.full((h, w), 2.0, np.float32), offset=np.zeros((h, w), np.float32), depth=np.full((h, w), 1.5, np.float32),
+        )
+    (root / "renders").mkdir()
+    cv2.imwrite(str(root / "renders" / "rgb_000000.png"), np.full((h, w, 3), 128, np.uint8))
+    cv2.imwrite(str(root / "renders" / "depth_000000.png"), np.full((h, w), 1500, np.uint16))
+    write_mesh_ply(root / "mesh.ply", [[0, 0, 1], [1, 0, 1], [0, 1, 1]], [[0, 1, 2]], [[255, 0, 0]] * 3)
+    return poses
+
+
+def test_merged_gaussians_in_world_coordinates(tmp_path):
+    """Gaussian (v, u) of frame i lies on pixel (v, u)'s ray at |depth + offset|, moved by the frame's pose."""
+    from sgad_jax.viewer import merged_gaussians
+
+    poses = fabricate_run(tmp_path)
+    intr = make_intrinsics(20.0, 20.0, 7.5, 5.5, 16, 12)
+    g = merged_gaussians(tmp_path, poses, intr, max_count=10_000)
+    assert g["total"] == 3 * 12 * 16 and len(g["centers"]) == g["total"]
+    assert np.allclose(g["centers"][:, 2], 1.5)
+    # frame 0 (identity): x spans (u - cx) / fx * z over u = 0..15; the others are shifted by 0.1 m per frame
+    xs = np.sort(np.unique(np.round(g["centers"][:, 0], 5)))
+    assert xs.min() == pytest.approx(-7.5 / 20 * 1.5) and xs.max() == pytest.approx(7.5 / 20 * 1.5 + 0.2)
+    assert np.allclose(g["covariances"][:, 0, 0], (0.02 / 3) ** 2) and np.allclose(g["opacities"], 1 / (1 + np.exp(-2.0)))
+    few = merged_gaussians(tmp_path, poses, intr, max_count=100)
+    assert 40 < len(few["centers"]) < 200  # subsampled to about the count asked for
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_view_answers_http(tmp_path):
+    fabricate_run(tmp_path)
+    port = _free_port()
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sgad_jax", "view", str(tmp_path), "--host", "127.0.0.1", "--port", str(port)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+    )
+    try:
+        deadline, status = time.monotonic() + 60, None
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as r:
+                    status = r.status
+                    body = r.read(200)
+                break
+            except OSError:
+                time.sleep(0.5)
+        assert proc.poll() is None, proc.stderr.read().decode()
+        assert status == 200 and body
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def test_view_bad_folder_one_line(tmp_path, capsys):
+    from sgad_jax.cli import main
+
+    assert main(["view", str(tmp_path / "nowhere")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "run folder not found" in err
