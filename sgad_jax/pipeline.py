@@ -644,8 +644,8 @@ def run(
 def _score_test_views(system: SLAM, ds: Dataset, est: np.ndarray) -> dict:
     """A dataset's own test views (ScanNet++ DSLR ``test``) rendered from the scene at their
     ground-truth poses carried into the estimated trajectory's frame (the SE(3) alignment of the
-    estimated to the ground-truth positions, as ATE aligns): ``test_*`` means and ``test_per_frame``."""
-    from sgad_jax.eval.ate import align_umeyama
+    estimated to the ground-truth poses, least squares in rotation, then in position): ``test_*``
+    means and ``test_per_frame``."""
     from sgad_jax.io.datasets import ScanNetPPDataset
 
     try:
@@ -656,9 +656,12 @@ def _score_test_views(system: SLAM, ds: Dataset, est: np.ndarray) -> dict:
     ok = np.isfinite(gt).all(axis=(1, 2))
     if ok.sum() < 3:
         return {"test_views": "not scored: fewer than 3 frames with ground truth to align the trajectory"}
-    R, t, _ = align_umeyama(est[ok, :3, 3], gt[ok, :3, 3])
-    A = np.eye(4)
-    A[:3, :3], A[:3, 3] = R, t  # estimated frame -> ground-truth frame
+    # Rotations and positions together: positions alone leave the rotation about a straight path free.
+    M = np.einsum("fij,fkj->ik", gt[ok, :3, :3], est[ok, :3, :3])
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    A = np.eye(4)  # estimated frame -> ground-truth frame
+    A[:3, :3], A[:3, 3] = R, (gt[ok, :3, 3] - est[ok, :3, 3] @ R.T).mean(0)
     poses = np.linalg.inv(A)[None] @ test.gt_poses
     scored = [i for i in range(len(test)) if np.isfinite(poses[i]).all()]
     recs = system.mapper.score_views(scored, poses, test.__getitem__, kind="test")

@@ -165,7 +165,7 @@ def test_held_out_views_end_to_end(tmp_path, capsys):
 
 
 def test_scannetpp_test_views_are_scored_from_the_scene(tmp_path):
-    """A ScanNet++ DSLR folder made from the synthetic room (6 train, 2 test views between them):
+    """A ScanNet++ DSLR folder made from the synthetic room (6 train views, 2 test views among them):
     the test views are rendered at their ground-truth poses carried into the estimated trajectory's
     frame, scored as ``test_*`` and written under the test_ names."""
     import cv2
@@ -173,11 +173,11 @@ def test_scannetpp_test_views_are_scored_from_the_scene(tmp_path):
     from sgad_jax.config import DataConfig, SyntheticConfig
     from sgad_jax.io.synthetic import SyntheticDataset
 
-    syn = SyntheticDataset(DataConfig(layout="synthetic", synthetic=SyntheticConfig(frames=16, width=160, height=120)))
+    syn = SyntheticDataset(DataConfig(layout="synthetic", synthetic=SyntheticConfig(frames=60, width=160, height=120)))
     dslr = tmp_path / "scene" / "dslr"
     flip = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera axes -> nerfstudio's
     frames, test = [], []
-    for i in range(0, 16, 2):
+    for i in range(8):
         s = syn[i]
         name = f"DSC{i:05d}.JPG"
         (dslr / "undistorted_images").mkdir(parents=True, exist_ok=True)
@@ -185,7 +185,7 @@ def test_scannetpp_test_views_are_scored_from_the_scene(tmp_path):
         assert cv2.imwrite(str(dslr / "undistorted_images" / name), np.ascontiguousarray(s.rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 98])
         assert cv2.imwrite(str(dslr / "undistorted_depths" / f"DSC{i:05d}.png"), (s.depth * 1000).round().astype(np.uint16))
         rec = {"file_path": name, "transform_matrix": (flip @ syn.gt_poses[i] @ flip).tolist()}
-        (test if i in (6, 10) else frames).append(rec)
+        (test if i in (3, 6) else frames).append(rec)
     fx, fy, cx, cy = syn.intrinsics.as_tuple()
     meta = dict(w=160, h=120, fl_x=fx, fl_y=fy, cx=cx, cy=cy, camera_model="PINHOLE", frames=frames, test_frames=test)
     (dslr / "nerfstudio").mkdir()
