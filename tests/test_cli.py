@@ -64,6 +64,7 @@ def _write_generic(root, n=4, bad=None):
         (root / "depth" / f"{bad:04d}.png").write_bytes(b"not a png")
 
 
+@pytest.mark.slow
 def test_corrupt_frame_keeps_results(tmp_path, capsys):
     data, out = tmp_path / "data", tmp_path / "out"
     _write_generic(data, n=4, bad=2)

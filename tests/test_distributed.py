@@ -52,6 +52,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_batch_mapper_matches_map_step():
     """One batch through shard_map + vmap equals the plain jitted map_step frame by frame."""
     cfg = resolve_config(None, None, overrides=TINY)
@@ -205,6 +206,7 @@ def test_gaussian_store_spills_beyond_budget(tmp_path):
     assert not root.exists()
 
 
+@pytest.mark.slow
 def test_streaming_api_matches_run(tmp_path):
     """Feeding frames one at a time to `SLAM` gives `run`'s trajectory and scores."""
     cfg = resolve_config(None, None, overrides=TINY)
@@ -221,6 +223,7 @@ def test_streaming_api_matches_run(tmp_path):
     assert g.rgb.shape == (60, 80, 3) and np.isfinite(g.offset).all()
 
 
+@pytest.mark.slow
 def test_run_with_rendering_init(tmp_path):
     """`map.render_init` in the host loop: the guess refined from the previous frame's Gaussians,
     then GICP; the synthetic trajectory stays accurate."""

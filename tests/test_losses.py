@@ -93,6 +93,7 @@ def test_ms_ssim_of_identical_images_is_one_and_small_images_are_refused():
         image.ms_ssim(a[:100], b[:100])
 
 
+@pytest.mark.slow
 def test_ssim_loss_gradient_matches_autodiff_of_a_dense_window():
     """The hand-written SSIM gradient (pred, target and mask) against autodiff of SSIM computed with
     an explicit 11x11 window (a dense 2D convolution, float64)."""
