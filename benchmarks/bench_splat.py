@@ -56,11 +56,10 @@ def keep_freed_memory() -> bool:
     no trimming); True if it applied. The same as starting with ``MALLOC_ARENA_MAX=1
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=2147483647``.
 
-    XLA:CPU allocates a call's scratch afresh (the three-frame render gradient: 88 MB), and glibc
-    maps such blocks from the system and unmaps them when freed, so each call touches its scratch
-    as new pages (22-29k page faults per call). Kept, the neighbour path's gradient ran 161-172
-    against 216-217 ms (alternating calls in one process), but ``map_frame`` and tracking got
-    slower (one arena for all threads), so ``sgad-jax run`` leaves malloc as it is (README).
+    XLA:CPU allocates a call's scratch afresh, and glibc maps such blocks from the system and
+    unmaps them when freed, so each call touches its scratch as new pages. Keeping them speeds up
+    the neighbour path's gradient, but slows ``map_frame`` and tracking (one arena for all
+    threads), so ``sgad-jax run`` leaves malloc as it is (docs/method.md).
     """
     import ctypes
     import ctypes.util

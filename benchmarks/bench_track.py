@@ -1,7 +1,6 @@
 """Tracking speed and accuracy: sgad_jax against small_gicp on the same frames, in one process.
 
-The peer is small_gicp (C++, PyPI ``small-gicp``) run frame-to-model as in the baseline of
-``shared/data/README.md``: every R-th depth pixel, covariances from K_c neighbours (its k-d tree),
+The peer is small_gicp (C++, PyPI ``small-gicp``) run frame-to-model: every R-th depth pixel, covariances from K_c neighbours (its k-d tree),
 VGICP against its own Gaussian voxel map (5 cm voxels), constant-velocity guess, the aligned frame
 inserted into the map, 2 threads. Both sides are timed per frame from a depth image in memory to
 an updated map (preprocessing included); compile time is reported separately.
@@ -87,7 +86,7 @@ def _stage_times(tcfg, geom, depth, intr, T) -> dict:
     """Each stage of our step on the last frame at its tracked pose (medians, ms). Point extraction
     and insertion run once per frame and are timed as calls; a Gauss-Newton step and a candidate
     lookup run inside the solver's loop and are timed there, as the cost of one more iteration
-    (a separate call per step would add the call's own overhead, 0.1-0.3 ms here), on the full
+    (a separate call per step would add the call's own overhead), on the full
     cloud and on the first coarse level (``*_coarse``: every ``tcfg.coarse[0]``-th point)."""
     import dataclasses
 
@@ -152,8 +151,8 @@ def main() -> None:
     tcfg = cfg.track
 
     # Ours: compile once; then both trackers run the whole sequence in turn, `--rounds` times, so
-    # that each round's pair of medians is measured within seconds of each other (this machine's
-    # speed drifts by tens of percent within minutes). Poses and ATEs are the first round's (every
+    # that each round's pair of medians is measured within seconds of each other (a shared
+    # machine's speed drifts within minutes). Poses and ATEs are the first round's (every
     # round computes the same).
     t0 = time.perf_counter()
     step = pipeline.compile_step(tcfg, slam.init_state(tcfg, pipeline.initial_pose(ds)), jnp.asarray(depths[0]), intr, dts[0])

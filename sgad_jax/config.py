@@ -64,14 +64,14 @@ class TrackConfig:
     # previous frame's pose instead of being tracked again from a moved guess.
     hold_repeated_depth: bool = True
     # Residual weight (z / 1 m)^-p of a point at camera depth z (0: unweighted, as the paper);
-    # see README, "Depth weighting".
+    # see docs/method.md, "Departures from the paper".
     depth_weight_power: float = 1.0
     # Coarse to fine: Gauss-Newton first converges on every c-th point for each c in turn, then on
-    # all points; () is one level, as in the paper. Same accuracy, fewer full-size steps (README).
+    # all points; () is one level, as in the paper. Same accuracy, fewer full-size steps (docs/method.md).
     coarse: tuple[int, ...] = (3,)
     # Largest multiple of a Gauss-Newton update taken when consecutive updates shrink the same way
     # (Aitken extrapolation, sgad_jax.track._stretch); 1: plain Gauss-Newton. Fewer steps, same
-    # accuracy (README).
+    # accuracy (docs/method.md).
     extrapolation: float = 4.0
 
     def __post_init__(self):
@@ -87,7 +87,7 @@ class MapConfig:
 
     iterations: int = 100
     neighbours: int = 2
-    current_view_fraction: float = 0.7  # paper: at least 0.4; see README (neighbour views pull the own view down)
+    current_view_fraction: float = 0.7  # paper: at least 0.4; see docs/method.md (neighbour views pull the own view down)
     lr_rgb: float = 0.0025
     lr_radius: float = 0.005
     lr_opacity: float = 0.05
@@ -96,7 +96,7 @@ class MapConfig:
     weight_ssim: float = 0.2
     weight_depth: float = 1.0
     learn_offset: bool = True  # False: Gaussians stay at the measured depth (the paper's ablation)
-    offset_at_invalid: bool = False  # True: also learn the offsets of Gaussians where depth was not measured (see README)
+    offset_at_invalid: bool = False  # True: also learn the offsets of Gaussians where depth was not measured (see docs/method.md)
     # Frames mapped together: within a batch, not-yet-mapped neighbours contribute their initial
     # Gaussians; 0: one frame per mapping device (1 on one device: strictly sequential, as the paper).
     batch: int = 0

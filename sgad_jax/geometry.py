@@ -5,9 +5,9 @@ Layout (see :class:`sgad_jax.types.GeometrySet`): the data (point, covariance, n
 entry's data is. The table has at least 8 entries per data slot, in buckets of :data:`BUCKET`; a
 key lives in its home bucket (a multiplicative hash of the key) or the next one, so a lookup is
 one gather of two adjacent buckets and a comparison, and an insertion touches only the buckets of
-the new keys; one bucket past the home buckets takes the last one's spill. On XLA:CPU this looks
-up the 8 voxels around 12k points in 0.7 ms, where binary searches in a sorted key array took
-1.6-1.8 ms, and an insertion no longer rebuilds an index of the whole capacity.
+the new keys; one bucket past the home buckets takes the last one's spill. Unlike binary searches
+in a sorted key array, a lookup is one gather, and an insertion never rebuilds an index of the
+whole capacity.
 A key whose two buckets are full is dropped and counted as overflow (with the table at most 1/8
 full, two buckets of 4 hold 8 keys where 1 is expected; every key reported in ``InsertInfo``).
 
@@ -75,9 +75,8 @@ def _home(geom: GeometrySet, key: Int[Array, "*m"]) -> Int[Array, "*m"]:
 def _lookup(geom: GeometrySet, key: Int[Array, "*m"]) -> tuple[Int[Array, "*m"], Bool[Array, "*m"]]:
     """Data slot of each key (0 where absent) and whether it is in T."""
     # A key's two buckets, b and b + 1, lie side by side (the last home bucket's next one is the
-    # extra bucket past them): one gather of 2 * BUCKET entries. Two bucket gathers joined were 8%
-    # slower on a full cloud; this is 6-15% faster than when the last bucket's pair wrapped to
-    # bucket 0, which every lookup then compared on its own.
+    # extra bucket past them): one gather of 2 * BUCKET entries, cheaper than two bucket gathers
+    # joined, and no pair ever wraps to bucket 0.
     start = _home(geom, key) * BUCKET
     dims = jax.lax.GatherDimensionNumbers(offset_dims=(key.ndim,), collapsed_slice_dims=(), start_index_map=(0,))
     pair = jax.lax.gather(geom.bucket_keys.reshape(-1), start[..., None], dims, (2 * BUCKET,), mode="clip")
@@ -102,10 +101,8 @@ def occupied(geom: GeometrySet, p_w: Float[Array, "3 m"]) -> Bool[Array, " m"]:
 
 
 #: An insertion works on the frame's new points (those in empty voxels) in chunks of this many:
-#: after the first frame, a tracked frame brings few new points (median 53 / 359 / 306 of 8-11k
-#: valid in the TUM / 7-Scenes / Replica sequences here, 90th percentile under 1000), so one
-#: chunk takes them all, and its sort and searches cost a fraction of what they cost over every
-#: point of the frame (insertion 0.7-0.8 ms instead of 1.5-1.7 ms on TUM and 7-Scenes).
+#: after the first frame, a tracked frame brings a few hundred new points of its ~10k, so one
+#: chunk usually takes them all, and its sort and searches cost a fraction of a whole frame's.
 CHUNK = 1024
 
 
@@ -116,7 +113,7 @@ def insert(geom: GeometrySet, cloud_w: PointCloud) -> tuple[GeometrySet, InsertI
     are gathered in index order and inserted a chunk at a time (a ``while_loop``; none when there
     are none), each chunk checked against the set as the previous chunks left it. Within a chunk:
     the new key hashes are sorted (one 32-bit word, so grouped by home bucket; a sort carrying the
-    point indices along ran 4x slower on XLA:CPU), the lowest point index of each voxel is found by
+    point indices along is much slower on XLA:CPU), the lowest point index of each voxel is found by
     a scatter-min (so over all chunks, the first point to reach a voxel owns it), each distinct new
     key is ranked within its home bucket and placed in the bucket's next free entries, or in the
     next bucket's when the home bucket is full; its data is appended at slots

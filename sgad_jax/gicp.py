@@ -12,7 +12,7 @@ SGAD-SLAM's geometry branch (paper Sec. 3.3, after GS-ICP SLAM):
 
 Symmetric 3x3 matrices are stored as their six entries ``(xx, yy, zz, xy, xz, yz)`` along the
 leading axis, vectors as ``(3, m)``. All per-point maths is component-wise on ``(m,)`` arrays: on XLA:CPU that is several times
-faster than batched ``einsum`` / ``eigh`` on ``(m, 3, 3)`` (see DESIGN.md, measured facts).
+faster than batched ``einsum`` / ``eigh`` on ``(m, 3, 3)``.
 """
 
 from __future__ import annotations
@@ -96,7 +96,7 @@ def _materialise(tree):
     several output rows (the eigen-decomposition below feeds nine) is recomputed for each of them.
     A one-turn ``while_loop`` whose turn count XLA cannot see stops that: its result is a stored
     buffer. (An optimisation barrier does not: XLA:CPU drops it before fusion; a loop that passes
-    its input through unchanged is folded away.) Frame extraction is 15-32% faster with it (README).
+    its input through unchanged is folded away.)
     Differentiable: the tangent passes straight through.
     """
     first = jax.tree.leaves(tree)[0]
@@ -134,9 +134,8 @@ def normalise_covariance(cov: Float[Array, "6 *m"], eps: float) -> tuple[Float[A
 # Frame preprocessing
 
 #: Up to this many entries (min(k, n - k) of n), :func:`_nearest` keeps a sorted list instead of
-#: counting ranks. TUM (k = 23 of 25, a list of the 2 farthest): extraction 20-26% faster; the list
-#: costs ~2t compare-and-selects per offset against the ranks' fixed n, equal at about t = 6
-#: (measured at k = 18-21 of 25).
+#: counting ranks: the list costs about 2t compare-and-selects per offset against the ranks' fixed
+#: n, so it wins for short lists (TUM drops the 2 farthest of 25) and loses beyond about t = 6.
 _LIST_MAX = 4
 
 
@@ -149,8 +148,7 @@ def _nearest(D: Float[Array, "n *m"], k: int) -> Bool[Array, "n *m"]:
     nearest (or the n - k farthest, those dropped) with their indices; a candidate comes after
     every listed one of equal distance, as its index is higher. Otherwise each rank is counted: a
     loop over ``o'`` (rolled but for 5 steps a turn, so that the program and its compile time stay
-    small) with 8-bit counts, which keep the ``(n, *m)`` counts read and written each turn small
-    (7-11% faster extraction than 32-bit counts, one step a turn).
+    small) with 8-bit counts, which keep the ``(n, *m)`` counts read and written each turn small.
     """
     n = D.shape[0]
     if k >= n:

@@ -22,7 +22,7 @@ def _masked_mean(x: Float[Array, "h w"], mask: Bool[Array, "h w"] | Float[Array,
 
 def channel_mean(x: Float[Array, "..."], axis: int) -> Float[Array, "..."]:
     """Mean over a (short) channel axis as a sum of slices: XLA:CPU turns ``jnp.mean(x, axis)``
-    followed by a full reduction into one XNNPACK reduction that ran 10x slower."""
+    followed by a full reduction into one XNNPACK reduction that is much slower."""
     parts = [jax.lax.index_in_dim(x, i, axis, keepdims=False) for i in range(x.shape[axis])]
     return sum(parts) / len(parts)
 
@@ -47,8 +47,8 @@ def _gauss_kernel(dtype) -> Float[Array, " k"]:
     return k / jnp.sum(k)
 
 
-#: Outputs per tile of the blur. Smaller tiles skip more of the Toeplitz matrix's zeros: 16 ran the
-#: SSIM loss and its gradient 14% faster than 32 at 320x240 (5.5 vs 6.4 ms) and no slower at 640x480.
+#: Outputs per tile of the blur. Smaller tiles skip more of the Toeplitz matrix's zeros, but too small
+#: ones add matrix products: 16 beat 32 and 12 at 320x240 and was no slower at 640x480.
 _TILE = 16
 
 
@@ -79,7 +79,7 @@ def _tiles(x: Array, axis: int) -> Array:
 def _blur_same(x: Float[Array, "... h w"]) -> Float[Array, "... h w"]:
     """Separable 11x11 Gaussian filter with zero padding ('same' output, as 3DGS's conv2d), as
     tiled matrix products: each axis is cut into tiles of 16 (+10 halo) and every tile multiplied
-    by the same 16 x 26 Toeplitz matrix. On XLA:CPU this ran 10-50x faster than a depthwise
+    by the same 16 x 26 Toeplitz matrix. On XLA:CPU this is far faster than a depthwise
     convolution or 11 shifted slices. The filter is self-adjoint (a symmetric kernel with zero
     padding), which the SSIM gradient uses."""
     t = _toeplitz(x.dtype)
@@ -186,7 +186,7 @@ def mapping_loss(
     depth_mask = valid if mask is None else valid & (mask > 0)
     target = target_rgb if isinstance(target_rgb, SSIMTarget) else ssim_target(target_rgb)
     # Channel-first inside: the renderer composites channel-first, and on XLA:CPU reductions over a
-    # minor channel axis ran several times slower.
+    # minor channel axis are much slower.
     x = jnp.moveaxis(rgb, -1, 0)
     return (
         weight_l1 * _l1_cf(x, target.image, mask)

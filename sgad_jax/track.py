@@ -67,7 +67,7 @@ def match(cfg: TrackConfig, cand: Candidates, q: Float[Array, "3 m"]) -> tuple[F
     Returns:
         (residual ``q - b`` (3, m), the match's covariance (6, m), found mask (m,)).
     """
-    # Written on (8, m) rows: XLA:CPU is ~10x slower on the same maths over (3, 8, m) tensors.
+    # Written on (8, m) rows: XLA:CPU is much slower on the same maths over (3, 8, m) tensors.
     e = [q[a][None] - cand.points[a] for a in range(3)]
     d2 = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
     ok = cand.ok & (d2 <= cfg.max_correspondence**2)
@@ -75,9 +75,8 @@ def match(cfg: TrackConfig, cand: Candidates, q: Float[Array, "3 m"]) -> tuple[F
     score = jnp.where(ok, surf * surf + cfg.nn_weight * d2, jnp.inf)
     best = jnp.min(score, axis=0)
     # The first candidate attaining the minimum (argmin is slow on XLA:CPU), then its point and
-    # covariance by one gather each: selecting with a one-hot sum over the 8 rows took 0.8 ms of
-    # a 1.15 ms Gauss-Newton step at 12k points, this 0.46 ms. (Gathering every candidate's
-    # covariance at lookup instead of the chosen one's here cost more: 3.35 lookups per frame.)
+    # covariance by one gather each, cheaper than a one-hot sum over the 8 rows. (Only the chosen
+    # candidate's covariance is gathered: eight per lookup would cost more than one per match.)
     n, m = score.shape
     row = jnp.arange(n, dtype=jnp.int32)[:, None]
     first = jnp.min(jnp.where((score == best) & ok, row, n - 1), axis=0)
@@ -99,8 +98,8 @@ def depth_weights(cfg: TrackConfig, cloud: PointCloud) -> Float[Array, " m"]:
 
     Depth noise of RGB-D sensors grows with depth (Kinect v1: its standard deviation grows as
     z^2), while the scale-normalised covariances of the paper give every point the same weight
-    whatever its depth; ``1 / z`` gives near, precise points more say (see README, "Depth
-    weighting").
+    whatever its depth; ``1 / z`` gives near, precise points more say (see docs/method.md,
+    "Departures from the paper").
     """
     return jnp.maximum(cloud.points[2], _WEIGHT_NEAR) ** (-cfg.depth_weight_power)
 
@@ -120,8 +119,8 @@ def cost(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T_wc: lie.SE3) 
 
 
 # Candidates looked up at pose T_ref serve while the pose stays within this many voxels of T_ref;
-# on coarse levels, whose pose only seeds the next level, twice as long (8% faster per frame, same
-# accuracy; on the full cloud, 0.5 cost 7-Scenes RPE, see README).
+# on coarse levels, whose pose only seeds the next level, twice as long (fewer lookups, same
+# accuracy; on the full cloud 0.5 let 7-Scenes drift more, see docs/method.md).
 _FRESH, _FRESH_COARSE = 0.25, 0.5
 
 
@@ -166,8 +165,8 @@ def solve(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3) -
 def _gauss_newton(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3, fresh_voxels: float) -> tuple[lie.SE3, TrackInfo]:
     """Gauss-Newton GICP of one level, from ``T0``, until convergence or ``cfg.max_iterations``;
     candidates are looked up again whenever a point of ``cloud`` has moved ``fresh_voxels`` voxels."""
-    # The farthest point of this cloud from the camera (an assumed 4 m before; TUM's farthest
-    # points are 1.4-3.8 m away): 2.8% faster per TUM frame, 0.8% on 7-Scenes, same accuracy.
+    # How far a rotation can move a point: the farthest point of this cloud from the camera, a
+    # tighter bound than an assumed constant, so candidates are looked up no more often than needed.
     reach = jnp.max(jnp.where(cloud.valid, jnp.sqrt(jnp.sum(cloud.points * cloud.points, axis=0)), 0.0))
     weight = depth_weights(cfg, cloud)
 

@@ -22,6 +22,7 @@ def _run(args, capsys):
     return code, out, err
 
 
+@pytest.mark.slow
 def test_synthetic_run_as_module(tmp_path):
     """`python -m sgad_jax run` on the built-in scene writes a TUM trajectory and metrics."""
     out = tmp_path / "run"
@@ -63,6 +64,7 @@ def _write_generic(root, n=4, bad=None):
         (root / "depth" / f"{bad:04d}.png").write_bytes(b"not a png")
 
 
+@pytest.mark.slow
 def test_corrupt_frame_keeps_results(tmp_path, capsys):
     data, out = tmp_path / "data", tmp_path / "out"
     _write_generic(data, n=4, bad=2)
@@ -98,6 +100,7 @@ def test_unknown_layout(tmp_path, capsys):
     assert code == 2 and "stuff" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_tum_real_frames(tmp_path, capsys):
     data = shared("tum_fr1_xyz")
     out = tmp_path / "tum"
@@ -109,6 +112,7 @@ def test_tum_real_frames(tmp_path, capsys):
     assert stamps[0] == pytest.approx(1305031102.175304, abs=1e-5)  # TUM timestamps, not indices
 
 
+@pytest.mark.slow
 def test_compile_cache_serves_a_second_run(tmp_path):
     """`--compile-cache DIR`: the first run stores its compiled tracking step there; a second run of
     the same command finds it (writes no new entry) and gets the same trajectory; `off` writes none."""

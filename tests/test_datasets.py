@@ -442,7 +442,6 @@ def test_open_dataset_auto_and_explicit(tmp_path):
 
 
 def test_open_dataset_synthetic():
-    pytest.importorskip("sgad_jax.io.synthetic", reason="sgad_jax.io.synthetic not written yet")
     assert type(open_dataset(DataConfig())).__name__ == "SyntheticDataset"
 
 

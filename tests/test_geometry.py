@@ -5,6 +5,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from sgad_jax import geometry
 from sgad_jax.types import KEY_EMPTY, PointCloud, empty_geometry
@@ -42,6 +43,7 @@ def _check_invariants(g):
     np.testing.assert_array_equal(np.asarray(k), keys[used])
 
 
+@pytest.mark.slow
 def test_insert_keeps_one_gaussian_per_voxel():
     rng = np.random.default_rng(0)
     g = empty_geometry(4096, VOXEL)
@@ -81,6 +83,7 @@ def test_insert_in_chunks_keeps_the_first_point_of_each_voxel():
     np.testing.assert_array_equal(stored[:, np.lexsort(stored)], want[:, np.lexsort(want)])
 
 
+@pytest.mark.slow
 def test_insert_reports_overflow_and_range():
     g = empty_geometry(64, VOXEL)
     pts = np.stack([np.arange(100) * VOXEL + VOXEL / 2, np.zeros(100), np.zeros(100)]).astype(np.float32)
@@ -92,6 +95,7 @@ def test_insert_reports_overflow_and_range():
     _check_invariants(g)
 
 
+@pytest.mark.slow
 def test_candidates_find_every_entry_within_half_a_voxel():
     rng = np.random.default_rng(1)
     g = empty_geometry(8192, VOXEL)
@@ -110,6 +114,7 @@ def test_candidates_find_every_entry_within_half_a_voxel():
         assert len(found) == hit[:, i].sum()  # no duplicates
 
 
+@pytest.mark.slow
 def test_occupied():
     g = empty_geometry(256, VOXEL)
     g, _ = geometry.insert(g, _cloud(np.array([[0.01], [0.01], [0.01]], np.float32)))
@@ -117,6 +122,7 @@ def test_occupied():
     np.testing.assert_array_equal(np.asarray(geometry.occupied(g, probe)), [True, False, False])
 
 
+@pytest.mark.slow
 def test_full_buckets_spill_then_overflow():
     """A table of 2 buckets (8 entries: one home bucket and the one for its spill) for 20 new
     voxels: keys go to their home bucket, then the next one; what fits nowhere is dropped and

@@ -20,6 +20,7 @@ def _spd(seed):
     return (Q * lam) @ Q.T
 
 
+@pytest.mark.slow
 @settings(deadline=None, max_examples=40)
 @given(st.integers(0, 10_000))
 def test_normalise_covariance_matches_eigh(seed):
@@ -110,6 +111,7 @@ def test_frame_points_match_brute_force_knn(k, window):
     assert checked > 0.8 * hs * ws - 20
 
 
+@pytest.mark.slow
 def test_frame_points_plane_normals():
     """On a tilted plane every normal is the plane's and the covariance is flat (eps floor)."""
     cfg = TrackConfig(stride=4, k=10)
@@ -152,6 +154,7 @@ def _pairs(seed, m):
     )
 
 
+@pytest.mark.slow
 def test_linearise_matches_autodiff():
     """H = J^T M J and g = J^T M e with J = d e / d xi (left perturbation), from jax.jacfwd."""
     with jax.enable_x64(True):
@@ -174,6 +177,7 @@ def test_linearise_matches_autodiff():
         np.testing.assert_allclose(c, sum(w[k] * e[:, k] @ Mm[k] @ e[:, k] for k in range(m)), rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_gicp_cost_gradient_matches_finite_differences():
     """Gradient of the GICP cost (M depends on R too) with respect to the pose, in float64."""
     with jax.enable_x64(True):

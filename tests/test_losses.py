@@ -1,5 +1,6 @@
 """Mapping losses and image metrics against direct, independent computations."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -57,7 +58,7 @@ def test_eval_ssim_is_valid_filtered_ssim():
 
 
 def test_eval_ssim_matches_scikit_image():
-    metrics = pytest.importorskip("skimage.metrics")
+    from skimage import metrics
     a, b = _pair(64, 80, seed=3)
     ref = metrics.structural_similarity(
         a.astype(np.float64), b.astype(np.float64), gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0, channel_axis=-1
@@ -92,10 +93,10 @@ def test_ms_ssim_of_identical_images_is_one_and_small_images_are_refused():
         image.ms_ssim(a[:100], b[:100])
 
 
+@pytest.mark.slow
 def test_ssim_loss_gradient_matches_autodiff_of_a_dense_window():
     """The hand-written SSIM gradient (pred, target and mask) against autodiff of SSIM computed with
     an explicit 11x11 window (a dense 2D convolution, float64)."""
-    jax = pytest.importorskip("jax")
     from jax.scipy.signal import convolve2d
 
     with jax.enable_x64(True):

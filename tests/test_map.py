@@ -41,6 +41,7 @@ def test_schedule_spends_the_share_on_the_own_view():
     assert abs(np.sum(sched == 1) - np.sum(sched == 2)) <= 1
 
 
+@pytest.mark.slow
 def test_mapping_loss_decreases(room):
     intr, frames, poses = room
     cfg = MapConfig(iterations=30)
@@ -55,6 +56,7 @@ def test_mapping_loss_decreases(room):
     assert float(after) < 0.5 * float(before)
 
 
+@pytest.mark.slow
 def test_offsets_stay_fixed_in_the_ablation_and_do_not_spoil_the_own_view_fit(room):
     """The ablation keeps every offset at 0; and fitted to its own view alone, a frame with offsets
     learned (the paper's rate: up to 1 cm per step) fits about as well as with offsets fixed:
@@ -73,6 +75,7 @@ def test_offsets_stay_fixed_in_the_ablation_and_do_not_spoil_the_own_view_fit(ro
     assert psnr[True] > psnr[False] - 1.0, psnr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("at_invalid", [True, False])
 def test_offsets_without_measured_depth(room, at_invalid):
     """``offset_at_invalid=False`` keeps the offsets of Gaussians at pixels without measured depth
@@ -90,6 +93,7 @@ def test_offsets_without_measured_depth(room, at_invalid):
     assert moved[hole].any() == at_invalid
 
 
+@pytest.mark.slow
 def test_missing_neighbours_iterations_change_nothing(room):
     """A frame without neighbours (the first of a run) ends as if mapped on its own view alone for
     its own-view share of the iterations."""
@@ -105,6 +109,7 @@ def test_missing_neighbours_iterations_change_nothing(room):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_map_frame_vmaps_over_frames(room):
     intr, frames, poses = room
     cfg = MapConfig(iterations=4)
@@ -117,6 +122,7 @@ def test_map_frame_vmaps_over_frames(room):
     np.testing.assert_allclose(np.asarray(batched.offset[1]), np.asarray(one.offset), atol=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("view", [0, 1])
 def test_loss_gradients_match_finite_differences(room, view):
     """d loss / d offsets and d loss / d pose (tangent), float64, in the own and a neighbour view."""
@@ -162,6 +168,7 @@ def _plane_frame(t_xy, intr: Intrinsics, z: float = 1.5):
     return make_frame(rgb.astype(np.float32), depth.astype(np.float32))
 
 
+@pytest.mark.slow
 def test_rendering_init_recovers_motion_that_gicp_misses():
     intr = Intrinsics(fx=jnp.float32(60.0), fy=jnp.float32(60.0), cx=jnp.float32(39.5), cy=jnp.float32(29.5), width=80, height=60)
     shift = np.array([0.04, -0.03])
@@ -182,6 +189,7 @@ def test_rendering_init_recovers_motion_that_gicp_misses():
     assert err < 0.005, (err, err_gicp)
 
 
+@pytest.mark.slow
 def test_map_step_compiles_once_for_a_sequence(room):
     """Fixed shapes: the first frames (fewer neighbours) and later ones share one compiled step."""
     import chex

@@ -63,6 +63,7 @@ def _max_per_slot(g, poses, view) -> int:
     return int(counts.max())
 
 
+@pytest.mark.slow
 def test_any_view_matches_reference():
     g, poses, view = _scene(2, 0), _poses(2, 1), _pose(2)
     layers = _max_per_slot(g, poses, view)  # no Gaussian is dropped by binning: an exact comparison
@@ -90,6 +91,7 @@ def test_own_view_matches_reference(window):
     assert float(jnp.abs(fast.rgb - in_z_order.rgb).max()) > 1e-3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("band", [None, 3])
 def test_vjp_matches_reference_including_pose(band, monkeypatch):
     """Gradients with respect to the Gaussians, the viewing pose, the frames' poses and the
@@ -117,6 +119,7 @@ def test_vjp_matches_reference_including_pose(band, monkeypatch):
     _close(gf, gr, tol=1e-8)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("band", [None, 3])
 def test_own_view_vjp_matches_reference_for_a_nearby_view(band, monkeypatch):
     """The own-view fast path keeps the source window; gradients w.r.t. the viewing pose and the
@@ -167,6 +170,7 @@ def test_own_view_at_own_pose_vjp_matches_reference(window, band, monkeypatch):
     _close(gf, gr, tol=1e-8)
 
 
+@pytest.mark.slow
 def test_renderer_vmaps_over_views():
     g, poses, views = _scene(2, 12), _poses(2, 13), _poses(3, 14)
     batched = jax.vmap(lambda v: splat.render(g, poses, v, _intr(), layers=2))(views)

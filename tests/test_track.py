@@ -107,6 +107,7 @@ def test_stretch_sums_a_geometric_sequence_of_updates():
     assert float(_stretch(TrackConfig(extrapolation=1.0), 0.5 * prev, prev)) == 1.0
 
 
+@pytest.mark.slow
 def test_extrapolation_takes_fewer_steps_on_real_frames():
     """On TUM fr1/xyz (a handheld camera: constant-velocity guesses off by up to 2 cm) stretched
     updates reach the solver's tolerance in fewer steps than plain Gauss-Newton, at poses within a
@@ -122,6 +123,7 @@ def test_extrapolation_takes_fewer_steps_on_real_frames():
     assert np.abs(fast.poses[:, :3, 3] - plain.poses[:, :3, 3]).max() < 1e-3
 
 
+@pytest.mark.slow
 def test_vmap_over_guesses(scene):
     ds, geom, cloud0, T0 = scene
     xis = jnp.array([[0.01, 0, 0, 0, 0, 0], [0, -0.01, 0.005, 0, 0.003, 0], [0, 0, 0, 0.005, 0, -0.004]])
@@ -133,6 +135,7 @@ def test_vmap_over_guesses(scene):
     assert infos.iterations.shape == (3,)
 
 
+@pytest.mark.slow
 def test_cost_gradient_matches_finite_differences(scene):
     """d cost / d xi at a perturbed pose (correspondences held) against central differences."""
     ds, geom, cloud0, T0 = scene
@@ -146,6 +149,7 @@ def test_cost_gradient_matches_finite_differences(scene):
     np.testing.assert_allclose(grad, fd, rtol=0.02, atol=0.02 * np.abs(fd).max())
 
 
+@pytest.mark.slow
 def test_implicit_gradient_of_tracked_pose(scene):
     """Shifting every point of the frame by d (camera frame) moves the optimum by -R d exactly."""
     ds, geom, cloud0, T0 = scene

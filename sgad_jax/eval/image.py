@@ -5,7 +5,7 @@ metric returns a float32 scalar array and runs under ``jit``, ``vmap`` and ``gra
 batches). Shape checks (image size, matching shapes) happen in Python before tracing and raise
 ``ValueError``. Hosts should ``float()`` the results; nothing here syncs with the device.
 
-* PSNR follows the three protocols of the papers, which differ (DESIGN.md, "Evaluation protocols").
+* PSNR follows the three protocols of the papers, which differ (docs/method.md, "Evaluation render").
 * SSIM and MS-SSIM follow ``pytorch_msssim`` 1.0 (Wang et al. 2003/2004): 11x11 Gaussian window,
   sigma 1.5, K = (0.01, 0.03), valid (unpadded) filtering, per-channel means, then the channel mean.
   Single-scale SSIM equals scikit-image's ``structural_similarity(gaussian_weights=True,
@@ -126,7 +126,7 @@ def _filter_valid(x: Float[Array, "... h w"]) -> Float[Array, "... h-10 w-10"]:
     """Separable Gaussian filter keeping only the outputs whose window lies inside the image.
 
     A sum of 11 shifted slices per axis: exact float32 arithmetic (no TF32 matmul on GPUs), and on
-    XLA:CPU 8x faster than a banded matmul and 30x faster than ``conv_general_dilated``.
+    XLA:CPU much faster than a banded matmul or ``conv_general_dilated``.
     """
     g = _gauss_window()
     h, w = x.shape[-2:]

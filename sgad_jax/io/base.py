@@ -54,7 +54,7 @@ class RGBDSample:
     def depth_filled(self) -> np.ndarray:
         """(h, w) float32 depth with holes inpainted (``depth`` itself if inpainting is off).
 
-        Computed on first use: inpainting a 640x480 frame costs ~100 ms, and tracking never needs it.
+        Computed on first use: inpainting is costly, and tracking never needs it.
         """
         return inpaint_depth(self.depth) if self.inpaint else self.depth
 

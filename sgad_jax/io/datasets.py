@@ -3,7 +3,7 @@
 Every loader returns full-resolution colour (uint8 RGB) and depth (float32 metres, 0 = missing) and
 camera-to-world ground truth in OpenCV axes (x right, y down, z forward), NaN where unknown; the
 base class :class:`~sgad_jax.io.base.Dataset` applies frame selection, downscaling and inpainting.
-The conventions (and where the published systems disagree) are in ``shared/DATASETS.md``.
+The conventions (and where the published systems disagree) are in ``docs/method.md``, "Dataset conventions".
 
 Layouts:
     ``tum``        TUM RGB-D: ``rgb.txt``, ``depth.txt``, ``groundtruth.txt``, depth / 5000.
