@@ -187,10 +187,8 @@ def map_frame(
     opt = optimizer(cfg)
     # A missing neighbour's iterations run like the others (which path an iteration takes depends
     # on the schedule alone: under vmap a data-dependent branch would run both paths at every
-    # iteration) and their update is discarded. (They used to fit the own view through the
-    # other-view path, which composites in view-depth order while the own-pose path composites in
-    # measured-depth order; with offsets learned the two disagree and the first frame of a run
-    # chattered: TUM frame 0 at 640x480, 68.9 dB with offsets learned, 107.8 dB fixed.)
+    # iteration) and their update is discarded: fitting the own view through the other-view path
+    # instead (view-depth order) made a first frame with learned offsets chatter.
     present = views.present
     targets = jax.vmap(losses.ssim_target)(views.rgb)  # fixed: computed once, not at every step
 

@@ -29,7 +29,7 @@ of ``K // 2`` pixels on every side (Gaussians centred just outside the image sti
 Compositing is sort-free and exact: ``T_j = exp(sum_k [k before j] log(1 - alpha_k))`` over a
 pixel's C candidates, with "before" meaning smaller depth in the view, ties broken by candidate
 index (in a frame's own view at its own pose: smaller measured depth, see :func:`render_own`). A
-per-pixel sort was 10x slower on XLA:CPU.
+per-pixel sort is much slower on XLA:CPU.
 
 Layout: per-Gaussian attributes are lists of A arrays in the order of :data:`ATTRS` (stacking
 them into one array cost more than compositing on XLA:CPU); images come out as ``(h, w, 3)`` colour, ``(h, w)`` depth and accumulated opacity.
@@ -131,10 +131,8 @@ def _camera_points(g: PixelGaussians, xz, yz, R, t):
 def _project(g: PixelGaussians, xz, yz, R, t, fx, fy, cx, cy) -> list[Float[Array, "h w"]]:
     """The :data:`ATTRS` images of :func:`project`. Its backward pass recomputes the forward from
     the inputs and differentiates the EWA projection by hand: autodiff kept a dozen intermediate
-    images alive, and the neighbour path's projection gradient used 63 MB of scratch memory
-    (32 MB now) and ran 2-4x slower."""
-    # Materialised once: XLA would otherwise recompute the transform inside each attribute row.
-    # (Stacked: the neighbour path's forward ran 104-115 ms with a tuple here, 94-104 ms with a stack.)
+    images alive and doubled the projection gradient's scratch memory."""
+    # Materialised once, stacked: XLA would otherwise recompute the transform inside each attribute row.
     x, y, z = jax.lax.optimization_barrier(jnp.stack(_camera_points(g, xz, yz, R, t)))
     u, v, zs, ca, cb, cc = _ewa_parts(x, y, z, g.radius, fx, fy, cx, cy)[0]
     opacity = jnp.where(z > NEAR, g.opacity, 0.0)
@@ -367,9 +365,9 @@ def composite(layers: Sequence[Float[Array, "l H W"]], window: int = 3) -> Rende
     ``layers`` (the A attributes' slot images, a list or an ``(A, l, H, W)`` array) cover the image
     plus a margin of ``window // 2`` pixels on each side. Transmittance
     is ``T_j = prod_k [k in front of j] (1 - alpha_k)``; the C^2 pairwise terms are unrolled over
-    (h, w) images, which XLA:CPU fuses into single loops (40x faster than a reduction over a
-    (C, C, h, w) tensor). The backward pass is written by hand in the same form (autodiff of the
-    unrolled graph was 20x slower than the forward pass).
+    (h, w) images, which XLA:CPU fuses into single loops (a reduction over a (C, C, h, w) tensor
+    is far slower). The backward pass is written by hand in the same form (autodiff of the
+    unrolled graph is far slower than the forward pass).
     """
     return _composite(window, list(layers))
 
@@ -391,10 +389,7 @@ def _composite_fwd(window, layers):
 
 
 #: Pixels per band of the backward passes (32 rows of 640), so that their temporaries stay in
-#: cache: at 640x480 the render gradients ran 1.2-1.4x faster with 32-row bands than with 64-row
-#: ones, at 320x240 up to 10% faster with 64-row bands than with 32-row ones. The binned path
-#: divides it by its layer count (two layers: 15 rows of 642 slots; 16 rows measured 118 ms
-#: against 130-154 ms with 32 rows for the compositing gradient at 640x480).
+#: cache; the binned path divides it by its layer count. Measured choices: docs/method.md.
 BAND_PIXELS = 32 * 640
 
 
@@ -470,8 +465,7 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
     # C-term products into each of their C consumers.
     if exact:
         # Here qs and zs are slices of the materialised layer: recomputing them is free, stacking
-        # them is not (own view 640x480 fwd+bwd 37.6 -> 30.4 ms; the general path got slower).
-        # (The opacities in `parts` are such slices too; stacked or not, they measured the same.)
+        # them is not (and the general path is slower stacked).
         weights, ss = (list(x) for x in jax.lax.optimization_barrier((jnp.stack(weights), jnp.stack(ss))))
     else:
         weights, ss, qs, zs = (list(x) for x in jax.lax.optimization_barrier(
@@ -517,10 +511,8 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
         )
         rows.append(list(range(NUM_ATTRS)))
     if layers[0].shape[0] == 1:
-        # One layer: materialising the per-candidate gradients is faster (43 vs 52 ms for an
-        # other view's fwd+bwd at 640x480); with two layers (10 candidates) their images no
-        # longer fit in cache and letting XLA fuse them into the slot sums is faster (117-118 vs
-        # 134-154 ms).
+        # One layer: materialising the per-candidate gradients is faster; with more layers their
+        # images no longer fit in cache and letting XLA fuse them into the slot sums is faster.
         grads = list(jax.lax.optimization_barrier(jnp.stack(grads)))
     # Scatter the candidates' gradients back onto their slots (the transpose of _candidates).
     k = window
