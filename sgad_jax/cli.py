@@ -138,10 +138,12 @@ def _run_dir_command(args) -> int:
 
 def _mesh_config(run_dir, overrides):
     """The run's saved config (defaults without one) with ``mesh.*`` overrides applied."""
-    from sgad_jax.config import SLAMConfig
-    from sgad_jax.io.run import run_config
+    import pathlib
 
-    cfg = run_config(run_dir) or SLAMConfig()
+    from sgad_jax.config import SLAMConfig
+    from sgad_jax.io.rundir import Run
+
+    cfg = Run(run_dir).config if (pathlib.Path(run_dir) / "metrics.json").is_file() else SLAMConfig()
     for item in overrides:
         if not item.strip().startswith("mesh."):
             raise ConfigError(f"--set {item}: only mesh.* settings apply to a finished run")

@@ -257,30 +257,48 @@ def mesh_run(run_dir, cfg: MeshConfig | None = None, downscale: int | None = Non
     Raises:
         DatasetError: a missing or unreadable file, named.
     """
-    import pathlib
-
-    from sgad_jax.io import run as runio
     from sgad_jax.io.base import DatasetError
+    from sgad_jax.io.ply import write_mesh_ply
+    from sgad_jax.io.rundir import Run, read_render
 
-    run = pathlib.Path(run_dir)
-    indices = runio.render_indices(run)
-    poses = runio.read_poses(run)
+    run = Run(run_dir)
+    indices = run.render_frames(with_depth=True)
+    if not indices:
+        raise DatasetError(f"{run.root / 'renders'}: no rendered colour and depth (rgb_XXXXXX.png + depth_XXXXXX.png); run with --save-renders")
+    poses = run.mapping_poses()  # the poses the renders were made at
     if indices[-1] >= len(poses):
-        raise DatasetError(f"{run / 'renders'}: render {indices[-1]} has no pose in trajectory.txt ({len(poses)} lines)")
-    intr = runio.read_cameras(run)
-    rgb, _ = runio.read_render(run, indices[0])
+        raise DatasetError(f"{run.root / 'renders'}: render {indices[-1]} has no pose in trajectory.txt ({len(poses)} lines)")
+    intr = run.intrinsics
+    rgb, _ = read_render(run.root, indices[0])
     if rgb.shape[:2] != (intr.height, intr.width):
-        raise DatasetError(f"{run / 'renders'}: renders are {rgb.shape[1]}x{rgb.shape[0]}, the cameras {intr.width}x{intr.height}")
-    saved = runio.run_config(run)
+        raise DatasetError(f"{run.root / 'renders'}: renders are {rgb.shape[1]}x{rgb.shape[0]}, the cameras {intr.width}x{intr.height}")
+    saved = run.config if (run.root / "metrics.json").is_file() else None
     cfg = cfg if cfg is not None else (saved.mesh if saved is not None else MeshConfig())
     downscale = downscale if downscale is not None else (saved.data.downscale if saved is not None else 1)
+    renders = _Renders(run.root, indices)
     try:
-        vertices, faces, colours, plan = fuse(runio.Renders(run, indices), poses[indices], intr, cfg, downscale, log=log)
+        vertices, faces, colours, plan = fuse(renders, poses[indices], intr, cfg, downscale, log=log)
     except ValueError as e:
-        raise DatasetError(f"{run / 'renders'}: {e}") from None
-    path = run / "mesh.ply"
-    runio.write_mesh_ply(path, vertices, faces, colours)
+        raise DatasetError(f"{run.root / 'renders'}: {e}") from None
+    path = run.root / "mesh.ply"
+    write_mesh_ply(path, vertices, faces, colours)
     return {
         "mesh": str(path), "vertices": int(len(vertices)), "faces": int(len(faces)), "frames": len(indices),
         "voxel_m": plan.voxel, "trunc_m": plan.trunc, "grid": list(plan.shape), "coarsened": plan.coarsened,
     }
+
+
+class _Renders:
+    """A run's renders as a re-iterable sequence of ``(rgb, depth)``, read lazily on each pass."""
+
+    def __init__(self, root, indices):
+        self.root, self.indices = root, list(indices)
+
+    def __len__(self):
+        return len(self.indices)
+
+    def __iter__(self):
+        from sgad_jax.io.rundir import read_render
+
+        for i in self.indices:
+            yield read_render(self.root, i)

@@ -27,7 +27,6 @@ import sys
 import time
 
 import jax
-import jax.numpy as jnp
 import cv2
 import numpy as np
 from tqdm import tqdm

@@ -16,7 +16,8 @@ import time
 import numpy as np
 
 from sgad_jax.config import ConfigError
-from sgad_jax.io import run as runio
+from sgad_jax.io.ply import read_mesh_ply
+from sgad_jax.io.rundir import Run, read_render
 from sgad_jax.io.base import DatasetError
 from sgad_jax.io.export import matrix_to_quaternion
 
@@ -32,65 +33,38 @@ def _viser():
     return viser
 
 
-def merged_gaussians(run_dir, poses: np.ndarray, intr, max_count: int, *, seed: int = 0) -> dict:
-    """Every mapped frame's Gaussians in world coordinates, uniformly subsampled to ``max_count``.
-
-    Gaussian ``(v, u)`` of frame ``i`` sits at camera depth ``z = |depth + offset|`` on the ray of pixel
-    ``(v, u)``, moved by the frame's camera-to-world pose; its radius ``exp(log_radius)`` spans
-    ``RADIUS_SIGMAS`` standard deviations (isotropic), its opacity is ``sigmoid(opacity_logit)``.
+def merged_gaussians(run_dir, max_count: int, *, seed: int = 0) -> dict:
+    """Every mapped frame's Gaussians in world coordinates (:func:`sgad_jax.io.ply.merged_gaussians`,
+    none merged away), uniformly subsampled to about ``max_count``.
 
     Returns:
         ``centers`` (n, 3), ``covariances`` (n, 3, 3), ``rgbs`` (n, 3) in [0, 1], ``opacities`` (n, 1),
         and ``total``, the count before subsampling.
     """
-    from sgad_jax.splat import RADIUS_SIGMAS
+    from sgad_jax.io.ply import merged_gaussians as world_gaussians
 
-    folder = pathlib.Path(run_dir) / "gaussians"
-    files = sorted(folder.glob("frame_*.npz")) if folder.is_dir() else []
-    files = [f for f in files if f.stem[6:].isdigit() and int(f.stem[6:]) < len(poses) and np.isfinite(poses[int(f.stem[6:])]).all()]
-    per_frame = intr.width * intr.height
-    total = len(files) * per_frame
-    rng = np.random.default_rng(seed)
-    keep_fraction = min(1.0, max_count / total) if total else 0.0
-    fx, fy, cx, cy = intr.as_tuple()
-    parts = {"centers": [], "sigma": [], "rgbs": [], "opacities": []}
-    for f in files:
-        try:
-            with np.load(f) as z:
-                g = {k: z[k] for k in ("rgb", "log_radius", "opacity_logit", "offset", "depth")}
-        except (OSError, KeyError, ValueError) as e:
-            raise DatasetError(f"{f}: not a Gaussians file ({e.__class__.__name__}: {e})") from None
-        depth = np.abs(g["depth"] + g["offset"]).reshape(-1)
-        pick = np.flatnonzero((rng.random(depth.size) < keep_fraction) & (depth > 0) & np.isfinite(depth))
-        v, u = np.divmod(pick, g["depth"].shape[1])
-        zc = depth[pick]
-        p_c = np.stack([(u - cx) / fx * zc, (v - cy) / fy * zc, zc], -1)
-        T = poses[int(f.stem[6:])]
-        parts["centers"].append(p_c @ T[:3, :3].T + T[:3, 3])
-        parts["sigma"].append(np.exp(g["log_radius"].reshape(-1)[pick]) / RADIUS_SIGMAS)
-        parts["rgbs"].append(np.clip(g["rgb"].reshape(-1, 3)[pick], 0.0, 1.0))
-        parts["opacities"].append(1.0 / (1.0 + np.exp(-g["opacity_logit"].reshape(-1)[pick])))
-    if not files:
-        return {"centers": np.zeros((0, 3), np.float32), "covariances": np.zeros((0, 3, 3), np.float32), "rgbs": np.zeros((0, 3), np.float32), "opacities": np.zeros((0, 1), np.float32), "total": 0}
-    cat = {k: np.concatenate(v).astype(np.float32) for k, v in parts.items()}
-    cov = (cat["sigma"] ** 2)[:, None, None] * np.eye(3, dtype=np.float32)
-    return {"centers": cat["centers"], "covariances": cov, "rgbs": cat["rgbs"], "opacities": cat["opacities"][:, None], "total": total}
+    g, _ = world_gaussians(run_dir, voxel=0.0)
+    total = len(g)
+    if total:
+        g = g.take(np.flatnonzero(np.random.default_rng(seed).random(total) < min(1.0, max_count / total)))
+    sigma2 = (g.sigma**2).astype(np.float32)
+    return {
+        "centers": g.xyz.astype(np.float32), "covariances": sigma2[:, None, None] * np.eye(3, dtype=np.float32),
+        "rgbs": np.clip(g.rgb, 0.0, 1.0).astype(np.float32), "opacities": g.opacity.astype(np.float32)[:, None], "total": total,
+    }
 
 
 def build_scene(server, run_dir, *, max_splats: int = 300_000) -> dict:
     """Add the run's cameras, trajectory, Gaussians and mesh to a viser server's scene; a summary."""
-    run = pathlib.Path(run_dir)
-    poses = runio.read_poses(run)
-    intr = runio.read_cameras(run)
+    run = Run(run_dir)
+    poses = run.trajectory[1]
+    intr = run.intrinsics
     finite = np.flatnonzero(np.isfinite(poses).all((1, 2)))
     scene = server.scene
     scene.set_up_direction("-y")  # OpenCV camera axes: the first camera's y points down
     summary = {"frames": len(poses)}
 
-    try:
-        renders = set(runio.render_indices(run))
-    except DatasetError:
-        renders = set()
+    renders = set(run.render_frames())
     fov = 2 * math.atan2(intr.height / 2, float(intr.fy))
     step = max(1, math.ceil(len(finite) / _FRUSTUMS))
     for i in finite[::step]:
@@ -98,7 +72,7 @@ def build_scene(server, run_dir, *, max_splats: int = 300_000) -> dict:
         x, y, z, w = matrix_to_quaternion(T[:3, :3])
         image = None
         if i in renders:
-            rgb, _ = runio.read_render(run, int(i))
+            rgb, _ = read_render(run.root, int(i))
             s = max(1, rgb.shape[1] // _THUMB_WIDTH)
             image = (rgb[::s, ::s] * 255 + 0.5).astype(np.uint8)
         scene.add_camera_frustum(
@@ -111,16 +85,16 @@ def build_scene(server, run_dir, *, max_splats: int = 300_000) -> dict:
         scene.add_line_segments("/trajectory", segments, colors=(220, 60, 40), thickness=0.005)
     summary["cameras"] = len(finite[::step])
 
-    g = merged_gaussians(run, poses, intr, max_splats)
+    g = merged_gaussians(run.root, max_splats) if run.gaussian_frames() else {"centers": [], "total": 0}
     if len(g["centers"]):
         scene.add_gaussian_splats("/gaussians", centers=g["centers"], covariances=g["covariances"], rgbs=g["rgbs"], opacities=g["opacities"])
     summary.update(gaussians_shown=int(len(g["centers"])), gaussians_total=int(g["total"]))
 
-    mesh_path = run / "mesh.ply"
+    mesh_path = run.root / "mesh.ply"
     if mesh_path.is_file():
         import trimesh  # a dependency of viser
 
-        vertices, faces, colours = runio.read_mesh_ply(mesh_path)
+        vertices, faces, colours = read_mesh_ply(mesh_path)
         mesh = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=colours, process=False)
         scene.add_mesh_trimesh("/mesh", mesh, visible=not len(g["centers"]))
         summary["mesh_faces"] = int(len(faces))
@@ -133,7 +107,7 @@ def serve(run_dir, *, host: str = "0.0.0.0", port: int = 8080, max_splats: int =
     run = pathlib.Path(run_dir)
     if not run.is_dir():
         raise DatasetError(f"{run}: run folder not found")
-    runio.read_poses(run)  # a bad folder fails before the server starts
+    Run(run).trajectory  # a bad folder fails before the server starts
     server = viser.ViserServer(host=host, port=port, verbose=False)
     summary = build_scene(server, run, max_splats=max_splats)
     shown = f"{summary['gaussians_shown']} of {summary['gaussians_total']} Gaussians"

@@ -16,7 +16,7 @@ from sgad_jax.eval.mesh import (
     rasterize_depth,
     score_mesh,
 )
-from sgad_jax.io.run import read_mesh_ply, write_mesh_ply
+from sgad_jax.io.ply import read_mesh_ply, write_mesh_ply
 from sgad_jax.mesh import fuse, plan_grid
 from sgad_jax.types import make_intrinsics
 

@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 
 from sgad_jax.io.export import write_tum_trajectory
-from sgad_jax.io.run import write_mesh_ply
-from sgad_jax.types import make_intrinsics
+from sgad_jax.io.ply import write_mesh_ply
 
 pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
 
@@ -45,16 +44,15 @@ def test_merged_gaussians_in_world_coordinates(tmp_path):
     """Gaussian (v, u) of frame i lies on pixel (v, u)'s ray at |depth + offset|, moved by the frame's pose."""
     from sgad_jax.viewer import merged_gaussians
 
-    poses = fabricate_run(tmp_path)
-    intr = make_intrinsics(20.0, 20.0, 7.5, 5.5, 16, 12)
-    g = merged_gaussians(tmp_path, poses, intr, max_count=10_000)
+    fabricate_run(tmp_path)
+    g = merged_gaussians(tmp_path, max_count=10_000)
     assert g["total"] == 3 * 12 * 16 and len(g["centers"]) == g["total"]
     assert np.allclose(g["centers"][:, 2], 1.5)
     # frame 0 (identity): x spans (u - cx) / fx * z over u = 0..15; the others are shifted by 0.1 m per frame
     xs = np.sort(np.unique(np.round(g["centers"][:, 0], 5)))
     assert xs.min() == pytest.approx(-7.5 / 20 * 1.5) and xs.max() == pytest.approx(7.5 / 20 * 1.5 + 0.2)
     assert np.allclose(g["covariances"][:, 0, 0], (0.02 / 3) ** 2) and np.allclose(g["opacities"], 1 / (1 + np.exp(-2.0)))
-    few = merged_gaussians(tmp_path, poses, intr, max_count=100)
+    few = merged_gaussians(tmp_path, max_count=100)
     assert 40 < len(few["centers"]) < 200  # subsampled to about the count asked for
 
 

@@ -309,20 +309,21 @@ def eval_mesh_run(run_dir, gt_mesh, *, data: str | None = None, mesh: str | None
     Raises:
         DatasetError: a missing or unreadable file, named.
     """
-    from sgad_jax.io import run as runio
     from sgad_jax.io.base import DatasetError
+    from sgad_jax.io.ply import read_mesh_ply
+    from sgad_jax.io.rundir import Run, merge_eval_json, read_render
 
-    run = pathlib.Path(run_dir)
-    rec_path = pathlib.Path(mesh) if mesh else run / "mesh.ply"
+    run = Run(run_dir)
+    rec_path = pathlib.Path(mesh) if mesh else run.root / "mesh.ply"
     if not rec_path.is_file():
         raise DatasetError(f"{rec_path}: no mesh (make it with `sgad-jax mesh {run}` or run with --mesh)")
-    rv, rf, _ = runio.read_mesh_ply(rec_path)
-    gv, gf, _ = runio.read_mesh_ply(gt_mesh)
+    rv, rf, _ = read_mesh_ply(rec_path)
+    gv, gf, _ = read_mesh_ply(gt_mesh)
     if len(gf) == 0:
         raise DatasetError(f"{gt_mesh}: the ground-truth mesh has no faces")
-    poses = runio.read_poses(run)
-    intr = runio.read_cameras(run)
-    cfg = runio.run_config(run)
+    poses = run.trajectory[1]
+    intr = run.intrinsics
+    cfg = run.config if (run.root / "metrics.json").is_file() else None
     seen_gt = seen_rec = None
     source = "renders"
     if cfg is not None:
@@ -341,11 +342,13 @@ def eval_mesh_run(run_dir, gt_mesh, *, data: str | None = None, mesh: str | None
             seen_gt = Views(gt_poses if use_gt else poses, depths)
             source = "dataset"
     if seen_gt is None:
-        indices = runio.render_indices(run)
-        depths = np.stack([runio.read_render(run, i)[1] for i in indices])
+        indices = run.render_frames(with_depth=True)
+        if not indices:
+            raise DatasetError(f"{run.root / 'renders'}: no depth renders to cull with, and the run's dataset does not open")
+        depths = np.stack([read_render(run.root, i)[1] for i in indices])
         seen_gt = seen_rec = Views(poses[indices], depths)
     scores = score_mesh((rv, rf), (gv, gf), intr, seen_gt, seen_rec, **kwargs)
     scores["mesh_cull_depth"] = source
     scores["mesh_gt"] = str(gt_mesh)
-    runio.merge_eval_json(run, scores)
+    merge_eval_json(run.root, scores)
     return scores

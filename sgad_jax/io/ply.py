@@ -286,3 +286,65 @@ def export_run(run_dir, voxel: float | None = None, out=None) -> tuple[pathlib.P
     out = pathlib.Path(run_dir) / "gaussians.ply" if out is None else pathlib.Path(out)
     note = f"sgad_jax export: {info.kept} of {info.total} Gaussians of {info.frames} frames, voxel {info.voxel:g} m"
     return write_3dgs_ply(out, gaussians, comments=(note,)), info
+
+
+# --- triangle meshes (mesh.ply) ---
+
+
+def write_mesh_ply(path, vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY: vertices ``x y z`` (float32) and ``red green blue`` (uchar) when
+    given, faces ``vertex_indices`` (list of int32); written atomically."""
+    from plyfile import PlyData, PlyElement
+
+    vertices = np.asarray(vertices, np.float32).reshape(-1, 3)
+    fields = [("x", "f4"), ("y", "f4"), ("z", "f4")]
+    if colours is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    v = np.empty(len(vertices), fields)
+    v["x"], v["y"], v["z"] = vertices.T
+    if colours is not None:
+        c = np.asarray(colours, np.uint8).reshape(-1, 3)
+        v["red"], v["green"], v["blue"] = c.T
+    f = np.empty(len(faces), [("vertex_indices", "i4", (3,))])
+    f["vertex_indices"] = np.asarray(faces, np.int32).reshape(-1, 3)
+    path = pathlib.Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")], text=False, byte_order="<").write(str(tmp))
+    os.replace(tmp, path)
+
+
+def read_mesh_ply(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(vertices (m, 3) float64, faces (k, 3) int64, colours (m, 3) uint8 or None)`` of a PLY
+    triangle mesh (polygons with more than three corners are fanned into triangles)."""
+    from plyfile import PlyData
+
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: mesh file not found")
+    try:
+        ply = PlyData.read(str(path))
+        v = ply["vertex"].data
+        vertices = np.stack([v["x"], v["y"], v["z"]], -1).astype(np.float64)
+        names = v.dtype.names
+        colours = np.stack([v["red"], v["green"], v["blue"]], -1).astype(np.uint8) if {"red", "green", "blue"} <= set(names) else None
+        faces = []
+        if "face" in ply:
+            data = ply["face"].data
+            key = "vertex_indices" if "vertex_indices" in data.dtype.names else "vertex_index"
+            polys = data[key]
+            try:
+                arr = np.stack(polys).astype(np.int64) if len(polys) else np.zeros((0, 3), np.int64)
+            except ValueError:  # mixed polygon sizes
+                arr = None
+            if arr is not None and arr.ndim == 2 and arr.shape[1] == 3:
+                faces = arr
+            else:
+                faces = np.array([(p[0], p[k], p[k + 1]) for p in polys for k in range(1, len(p) - 1)], np.int64).reshape(-1, 3)
+        faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    except DatasetError:
+        raise
+    except Exception as e:  # plyfile raises several kinds on malformed files
+        raise DatasetError(f"{path}: not a readable PLY triangle mesh ({e.__class__.__name__}: {e})") from None
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise DatasetError(f"{path}: face indices outside the {len(vertices)} vertices")
+    return vertices, faces, colours

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import os
 import pathlib
 import typing
 
@@ -137,11 +138,15 @@ class Run:
                     poses[i] = z["pose"]
         return poses
 
-    def render_frames(self, kind: str = "") -> list[int]:
+    def render_frames(self, kind: str = "", *, with_depth: bool = False) -> list[int]:
         """Run indices of the frames with a saved colour render (``renders/rgb_XXXXXX.png``; with
-        ``kind`` "nvs" the held-out views' ``renders/nvs_rgb_XXXXXX.png``)."""
-        prefix = f"{kind}_rgb_" if kind else "rgb_"
-        return sorted(int(p.stem[len(prefix):]) for p in (self.root / "renders").glob(f"{prefix}[0-9]*.png"))
+        ``kind`` "nvs" the held-out views' ``renders/nvs_rgb_XXXXXX.png``), and with
+        ``with_depth`` its depth render too."""
+        prefix = f"{kind}_" if kind else ""
+        found = sorted(int(p.stem[len(prefix) + 4 :]) for p in (self.root / "renders").glob(f"{prefix}rgb_[0-9]*.png"))
+        if with_depth:
+            found = [i for i in found if (self.root / "renders" / f"{prefix}depth_{i:06d}.png").is_file()]
+        return found
 
     @property
     def per_frame(self) -> list[dict]:
@@ -168,3 +173,19 @@ def read_render(root, index: int, kind: str = "") -> tuple[np.ndarray, np.ndarra
             raise DatasetError(f"{depth_path}: not a 16-bit depth image")
         depth = mm.astype(np.float32) / 1000.0
     return rgb, depth
+
+
+def merge_eval_json(run_dir, values: dict) -> pathlib.Path:
+    """Merge ``values`` into ``RUN_DIR/eval.json`` (created when absent), atomically."""
+    path = Run(run_dir).root / "eval.json"
+    current = {}
+    if path.is_file():
+        try:
+            current = json.loads(path.read_text())
+        except ValueError:
+            raise DatasetError(f"{path}: exists but is not JSON; move it away to write the scores") from None
+    current.update(values)
+    tmp = path.with_name(f".eval.json.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(current, indent=2))
+    os.replace(tmp, path)
+    return path
