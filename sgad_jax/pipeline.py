@@ -42,6 +42,7 @@ from sgad_jax.eval.ate import ate, rpe
 from sgad_jax.io.base import Dataset, DatasetError
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import write_tum_trajectory
+from sgad_jax.io.files import write_bytes, write_json
 from sgad_jax.io.store import GaussianStore
 from sgad_jax.types import Frame, PixelGaussians, make_frame
 
@@ -216,9 +217,9 @@ class _Mapper:
         rec = {"index": index, "holdout": kind != "", **scores}
         if self.renders is not None:
             prefix = f"{kind}_" if kind else ""
-            cv2.imwrite(str(self.renders / f"{prefix}rgb_{index:06d}.png"), cv2.cvtColor((rgb * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
             mm = np.clip(depth * 1000.0 + 0.5, 0, 65535).astype(np.uint16)
-            cv2.imwrite(str(self.renders / f"{prefix}depth_{index:06d}.png"), mm)
+            for name, img in (("rgb", cv2.cvtColor((rgb * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)), ("depth", mm)):
+                write_bytes(self.renders / f"{prefix}{name}_{index:06d}.png", cv2.imencode(".png", img)[1].tobytes())
         if not kind:
             self.per_frame.append(rec)
         return rec
@@ -554,6 +555,8 @@ def run(
     """
     ds = open_dataset(cfg.data)
     out = None if out_dir is None else pathlib.Path(out_dir)
+    if out is not None:
+        _check_writable(out)
     main = jax.process_index() == 0
     identity = _identity(cfg, ds, track_only, holdout_every)
     ckpt_root = None if out is None or jax.process_count() > 1 else out / "checkpoints"
@@ -632,8 +635,8 @@ def run(
         out.mkdir(parents=True, exist_ok=True)
         write_tum_trajectory(out / "trajectory.txt", stamps_np, poses_np)
         intr = ds.intrinsics
-        _write_json(out / "cameras.json", {"width": intr.width, "height": intr.height, "fx": float(intr.fx), "fy": float(intr.fy), "cx": float(intr.cx), "cy": float(intr.cy)})
-        _write_json(out / "metrics.json", metrics)
+        write_json(out / "cameras.json", {"width": intr.width, "height": intr.height, "fx": float(intr.fx), "fy": float(intr.fy), "cx": float(intr.cx), "cy": float(intr.cy)})
+        write_json(out / "metrics.json", metrics)
     if stopped:
         raise DatasetError(stopped)
     return RunResult(poses=poses_np, timestamps=stamps_np, metrics=metrics)
@@ -666,8 +669,11 @@ def _score_test_views(system: SLAM, ds: Dataset, est: np.ndarray) -> dict:
     return {"test_frames": len(recs), **_means(recs, "test_"), "test_per_frame": recs}
 
 
-def _write_json(path: pathlib.Path, data: dict) -> None:
-    """Write ``data`` as JSON atomically (temporary name, then rename)."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
+def _check_writable(out: pathlib.Path) -> None:
+    """Fail before any work when the output folder cannot be written."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_bytes(out / ".sgad_write_test", b"")
+        (out / ".sgad_write_test").unlink()
+    except OSError as err:
+        raise DatasetError(f"{out}: the output folder cannot be written ({err.strerror or err})") from None

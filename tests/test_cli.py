@@ -137,3 +137,13 @@ def test_compile_cache_serves_a_second_run(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr
     assert not (tmp_path / "env").exists() or not any((tmp_path / "env").iterdir())
+
+
+def test_unwritable_output_folder_fails_before_any_work(tmp_path, capsys):
+    from sgad_jax.cli import main
+
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    assert main(["run", "--quiet", "--track-only", "--out", str(blocker / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(blocker / "out") in err[0] and "cannot be written" in err[0]

@@ -16,9 +16,6 @@ run recorded too, the run's value) and a short ``RUN_DIR/report.md``.
 
 from __future__ import annotations
 
-import json
-import os
-import pathlib
 
 import numpy as np
 
@@ -27,6 +24,7 @@ from sgad_jax import splat
 from sgad_jax.eval import image
 from sgad_jax.eval.ate import ate, rpe
 from sgad_jax.io.base import DatasetError
+from sgad_jax.io.files import write_json, write_text
 from sgad_jax.io.rundir import Run, read_render
 from sgad_jax.types import make_frame
 
@@ -161,15 +159,9 @@ def evaluate_run(
     recorded = run.metrics
     result["recorded"] = {k: recorded.get(k) for k in COMPARED if recorded.get(k) is not None}
     if write:
-        _write_json(run.root / "eval.json", result)
-        (run.root / "report.md").write_text(report(result))
+        write_json(run.root / "eval.json", result)
+        write_text(run.root / "report.md", report(result))
     return result
-
-
-def _write_json(path: pathlib.Path, data: dict) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
 
 
 def report(result: dict) -> str:

@@ -5,11 +5,11 @@ Poses are camera-to-world; the quaternion is Hamilton ``(x, y, z, w)``, unit, wi
 
 from __future__ import annotations
 
-import os
 import pathlib
-import tempfile
 
 import numpy as np
+
+from sgad_jax.io.files import write_text
 
 HEADER = "# timestamp tx ty tz qx qy qz qw"
 
@@ -75,17 +75,7 @@ def write_tum_trajectory(path, timestamps: np.ndarray, poses: np.ndarray) -> Non
     lines = [HEADER] + [
         f"{t:.6f} " + " ".join(f"{v:.9g}" for v in (*p, *r)) for t, p, r in zip(ts, T[:, :3, 3], q)
     ]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write("\n".join(lines) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text(path, "\n".join(lines) + "\n")
 
 
 def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:

@@ -25,18 +25,15 @@ from matplotlib.ticker import MaxNLocator
 from sgad_jax.eval import image
 from sgad_jax.eval.ate import align_umeyama
 from sgad_jax.io.base import DatasetError
+from sgad_jax.io.files import atomic_write
 from sgad_jax.io.rundir import Run, read_render
 
 DPI = 100
 
 
 def _save(fig: Figure, path: pathlib.Path) -> pathlib.Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
     FigureCanvasAgg(fig)
-    fig.savefig(tmp, dpi=DPI)
-    tmp.replace(path)
-    return path
+    return atomic_write(path, lambda f: fig.savefig(f, dpi=DPI, format="png"))
 
 
 def top_view_axes(poses: np.ndarray) -> np.ndarray:

@@ -25,12 +25,12 @@ import dataclasses
 import math
 import os
 import pathlib
-import tempfile
 
 import numpy as np
 import plyfile
 
 from sgad_jax.io.base import DatasetError
+from sgad_jax.io.files import atomic_write
 from sgad_jax.splat import NEAR, RADIUS_SIGMAS
 from sgad_jax.types import Intrinsics, PixelGaussians
 
@@ -207,20 +207,6 @@ def merged_gaussians(source, voxel: float | None = None, *, min_opacity: float =
     return kept, MergeInfo(frames=len(indices), total=total, visible=visible, kept=len(kept), voxel=float(voxel))
 
 
-def _atomic_write(path: pathlib.Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_3dgs_ply(path, gaussians: WorldGaussians, *, comments: tuple[str, ...] = ()) -> pathlib.Path:
     """Write Gaussians as a 3DGS ``.ply`` (layout in the module docstring), atomically.
 
@@ -245,7 +231,7 @@ def write_3dgs_ply(path, gaussians: WorldGaussians, *, comments: tuple[str, ...]
     data["rot_0"] = 1.0
     element = plyfile.PlyElement.describe(data, "vertex")
     ply = plyfile.PlyData([element], text=False, byte_order="<", comments=list(comments))
-    _atomic_write(path, ply.write)
+    atomic_write(path, ply.write)
     return path
 
 
@@ -307,10 +293,8 @@ def write_mesh_ply(path, vertices: np.ndarray, faces: np.ndarray, colours: np.nd
         v["red"], v["green"], v["blue"] = c.T
     f = np.empty(len(faces), [("vertex_indices", "i4", (3,))])
     f["vertex_indices"] = np.asarray(faces, np.int32).reshape(-1, 3)
-    path = pathlib.Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")], text=False, byte_order="<").write(str(tmp))
-    os.replace(tmp, path)
+    ply = PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")], text=False, byte_order="<")
+    atomic_write(path, ply.write)
 
 
 def read_mesh_ply(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import os
 import pathlib
 import typing
 
@@ -22,6 +21,7 @@ import numpy as np
 from sgad_jax.config import DataConfig, ExportConfig, SLAMConfig
 from sgad_jax.io.base import DatasetError
 from sgad_jax.io.export import read_tum_trajectory
+from sgad_jax.io.files import write_json
 from sgad_jax.io.store import FIELDS
 from sgad_jax.types import Intrinsics, PixelGaussians, make_intrinsics
 
@@ -185,7 +185,5 @@ def merge_eval_json(run_dir, values: dict) -> pathlib.Path:
         except ValueError:
             raise DatasetError(f"{path}: exists but is not JSON; move it away to write the scores") from None
     current.update(values)
-    tmp = path.with_name(f".eval.json.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(current, indent=2))
-    os.replace(tmp, path)
+    write_json(path, current)
     return path

@@ -20,6 +20,7 @@ import weakref
 
 import numpy as np
 
+from sgad_jax.io.files import atomic_write
 from sgad_jax.types import PixelGaussians
 
 FIELDS = tuple(f.name for f in dataclasses.fields(PixelGaussians))
@@ -84,10 +85,8 @@ class GaussianStore:
     def _write(self, index: int, g: PixelGaussians) -> None:
         if index in self._on_disk:
             return
-        tmp = self.root / f".frame_{index:06d}.{os.getpid()}.npz"
         extra = {"pose": self._poses[index]} if index in self._poses else {}
-        np.savez(tmp, **{k: getattr(g, k) for k in FIELDS}, **extra)
-        os.replace(tmp, self.path(index))
+        atomic_write(self.path(index), lambda f: np.savez(f, **{k: getattr(g, k) for k in FIELDS}, **extra))
         self._on_disk.add(index)
 
     @property

@@ -1,0 +1,41 @@
+"""Output files written atomically: into a temporary file in the same folder, flushed, then renamed
+over the target, so that a crash or a kill never leaves a half-written file (a leftover temporary
+starts with a dot and ends in ``.tmp``)."""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import tempfile
+from collections.abc import Callable
+from typing import BinaryIO
+
+
+def atomic_write(path, write: Callable[[BinaryIO], object]) -> pathlib.Path:
+    """Call ``write(f)`` on a binary file that becomes ``path`` only once complete."""
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        pathlib.Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_bytes(path, data: bytes) -> pathlib.Path:
+    return atomic_write(path, lambda f: f.write(data))
+
+
+def write_text(path, text: str) -> pathlib.Path:
+    return write_bytes(path, text.encode())
+
+
+def write_json(path, data) -> pathlib.Path:
+    return write_text(path, json.dumps(data, indent=2))
