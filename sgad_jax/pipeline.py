@@ -267,6 +267,8 @@ class _Mapper:
             losses.append(float(loss))
         for i in mapped:
             self.store.put(i, params[i], self.scene.poses[i])
+        if not self.store.temporary:
+            self.store.flush()  # the files on disk are the refined Gaussians
         return {"finetune_iterations": iterations, "finetune_s": time.perf_counter() - t0, "finetune_loss_first": float(np.mean(losses[:50])), "finetune_loss_last": float(np.mean(losses[-50:]))}
 
     def metrics(self) -> dict:
