@@ -21,6 +21,7 @@ def _load(name):
     return module
 
 
+@pytest.mark.slow
 def test_pose_gradient_matches_finite_differences():
     r = _load("pose_gradient").main(width=32, height=24, verbose=False)
     assert np.abs(r["finite_difference"]).max() > 1e-3  # away from the minimum: a gradient to check
@@ -28,6 +29,7 @@ def test_pose_gradient_matches_finite_differences():
     np.testing.assert_allclose(r["grad"], r["finite_difference"], rtol=1e-4, atol=1e-8)
 
 
+@pytest.mark.slow
 def test_vmap_of_map_frame_equals_a_loop():
     r = _load("vmap_map_frame").main(frames=2, width=32, height=24, iterations=3, verbose=False)
     assert r["offset"].shape == (2, 24, 32)
@@ -35,6 +37,7 @@ def test_vmap_of_map_frame_equals_a_loop():
     assert (r["loss"][:, -1] < r["loss"][:, 0]).all()  # the batched fit does fit
 
 
+@pytest.mark.slow
 def test_custom_loop_without_ground_truth(tmp_path):
     out = tmp_path / "traj.txt"
     r = _load("custom_frames").main(frames=4, width=64, height=48, iterations=3, trajectory_file=out, verbose=False)

@@ -186,6 +186,7 @@ def test_export_command_on_a_fabricated_run(tmp_path, capsys):
     assert "run folder not found" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_replica_gaussians_on_the_mesh(tmp_path):
     """A short Replica run's exported opaque Gaussians lie on the ground-truth surface (median
     distance below 1 cm), measured against points sampled densely on the mesh's triangles."""

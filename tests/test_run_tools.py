@@ -34,6 +34,7 @@ def _png_size(path):
     return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
 
 
+@pytest.mark.slow
 def test_run_with_plots_and_export(run_dir, capsys):
     files = ["trajectory.png", "plots/ate_per_frame.png", "plots/psnr_per_frame.png", "plots/compare_000000.png", "plots/compare_000003.png"]
     for name in files:
@@ -47,6 +48,7 @@ def test_run_with_plots_and_export(run_dir, capsys):
     assert np.isfinite(g.xyz).all() and (g.opacity >= 0.005).all()
 
 
+@pytest.mark.slow
 def test_eval_reproduces_the_run(run_dir, capsys):
     assert main(["eval", str(run_dir)]) == 0
     ev = json.loads((run_dir / "eval.json").read_text())
@@ -64,6 +66,7 @@ def test_eval_reproduces_the_run(run_dir, capsys):
     assert "ate_rmse_cm" in report and f"{m['ate_rmse_cm']:.4f}" in report
 
 
+@pytest.mark.slow
 def test_eval_ate_matches_evo(run_dir):
     """The ATE recomputed from the run's files against evo's APE on the same trajectory and ground
     truth (an independent implementation of the alignment and the error)."""
@@ -86,6 +89,7 @@ def test_eval_ate_matches_evo(run_dir):
     assert ev["ate_mean_cm"] == pytest.approx(100 * ape.get_statistic(metrics.StatisticsType.mean), abs=1e-6)
 
 
+@pytest.mark.slow
 def test_eval_protocols_and_frames(run_dir, capsys):
     from sgad_jax.eval.run_eval import evaluate_run
 
@@ -99,6 +103,7 @@ def test_eval_protocols_and_frames(run_dir, capsys):
     assert main(["eval", str(run_dir), "--frames", "a:b"]) == 2
 
 
+@pytest.mark.slow
 def test_plots_mark_held_out_views_and_need_no_renders(run_dir, tmp_path, capsys):
     """`sgad-jax plots` on a copy whose metrics.json has per_frame rows (two held out) and no
     renders: the PSNR plot is drawn from per_frame and the comparisons are skipped with a note."""

@@ -41,6 +41,7 @@ def _slot_counts(gs, poses, view, intr, window=3) -> int:
     return int(counts.max())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_render_scene_matches_the_dense_reference(seed):
     """Values and vector-Jacobian products (colours, opacities, offsets, radii, the view pose) of
@@ -53,7 +54,7 @@ def test_render_scene_matches_the_dense_reference(seed):
         layers = _slot_counts(gs, poses, view, intr)
         assert 2 <= layers <= 12
         fast = scene.render_scene(gs, poses, view, intr, layers=layers)
-        ref = splat_ref.render(gs, poses, view, intr)
+        ref = jax.jit(splat_ref.render)(gs, poses, view, intr)
         for a, b in zip(fast, ref):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-9)
 
@@ -66,8 +67,9 @@ def test_render_scene_matches_the_dense_reference(seed):
             return sum(jnp.vdot(o, c) for o, c in zip(out, ct))
 
         xi0 = jnp.zeros(6)
-        got = jax.grad(vjp, argnums=(1, 2))(lambda g, v: scene.render_scene(g, poses, v, intr, layers=layers), pick(gs), xi0)
-        want = jax.grad(vjp, argnums=(1, 2))(lambda g, v: splat_ref.render(g, poses, v, intr), pick(gs), xi0)
+        grad = lambda render: jax.jit(jax.grad(lambda g, xi: vjp(render, g, xi), argnums=(0, 1)))(pick(gs), xi0)  # noqa: E731
+        got = grad(lambda g, v: scene.render_scene(g, poses, v, intr, layers=layers))
+        want = grad(lambda g, v: splat_ref.render(g, poses, v, intr))
         for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-9)
 
@@ -80,7 +82,7 @@ def test_render_scene_hides_padding_frames():
         view = lie.exp(jnp.zeros(6))
         two = jax.tree.map(lambda x: x[:2], gs), jax.tree.map(lambda x: x[:2], poses)
         padded = scene.render_scene(gs, poses, view, intr, jnp.array([True, True, False]), layers=12)
-        ref = splat_ref.render(*two, view, intr)
+        ref = jax.jit(splat_ref.render)(*two, view, intr)
         for a, b in zip(padded, ref):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-9)
 
@@ -125,7 +127,7 @@ def test_finetune_step_is_adam_on_the_present_frames():
         out = scene.render_scene(g, poses, view, intr, present, layers=6)
         return mapping.losses.mapping_loss(out.rgb, out.depth / jnp.maximum(out.alpha, 1e-3), rgb, depth, valid)
 
-    grad = jax.grad(loss_fn)(gs)
+    grad = jax.jit(jax.grad(loss_fn))(gs)
     opt = mapping.optimizer(cfg)
     first = jax.tree.map(lambda x: x[0], gs)
     upd, _ = opt.update(jax.tree.map(lambda x: x[0], grad), opt.init(first), first)
@@ -137,6 +139,7 @@ def test_finetune_step_is_adam_on_the_present_frames():
     assert np.asarray(state.count).tolist() == [1.0, 0.0] and np.isfinite(float(loss))
 
 
+@pytest.mark.slow
 def test_held_out_views_end_to_end(tmp_path, capsys):
     """`--holdout-every 4 --finetune 3 --save-renders` on the synthetic scene: held-out frames are
     tracked (in the trajectory) but get no Gaussians, are rendered from the scene and scored before
@@ -171,6 +174,7 @@ def test_held_out_views_end_to_end(tmp_path, capsys):
     assert evaluate_run(out, write=False)["novel_psnr"] == pytest.approx(m["nvs_psnr"], abs=0.1)
 
 
+@pytest.mark.slow
 def test_scannetpp_test_views_are_scored_from_the_scene(tmp_path):
     """A ScanNet++ DSLR folder made from the synthetic room (6 train views, 2 test views among them):
     the test views are rendered at their ground-truth poses carried into the estimated trajectory's

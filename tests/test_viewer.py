@@ -62,6 +62,7 @@ def _free_port():
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_view_answers_http(tmp_path):
     fabricate_run(tmp_path)
     port = _free_port()
