@@ -11,6 +11,8 @@ compile time:
 * the same three frames composed as the pipeline renders a frame's view (``render_frame``: the
   current frame's Gaussians by the own-pose path over its 2 neighbours', binned in one layer),
   forward + backward with respect to all three frames' Gaussians;
+* the scene renderer (``render_scene``): 8 frames' Gaussians (the three read, repeated) into one
+  640x480 view, 4 layers, forward;
 * one full ``map_frame`` (``--iterations``, default 100) at 320x240 with 2 neighbour views.
 
 Usage::
@@ -20,7 +22,7 @@ Usage::
 Prints one JSON object with ``own_640x480_fwd_ms``, ``own_640x480_fwd_bwd_ms``,
 ``own_320x240_fwd_ms``, ``own_320x240_fwd_bwd_ms``, ``neighbours2_640x480_fwd_ms``,
 ``neighbours2_640x480_fwd_bwd_ms``, ``neighbours2_pipeline_640x480_fwd_ms``,
-``neighbours2_pipeline_640x480_fwd_bwd_ms``, ``map_frame_320x240_s``, ``compile_s`` (total; ``compile_s_by_entry`` each) and the
+``neighbours2_pipeline_640x480_fwd_bwd_ms``, ``scene_640x480_k8_fwd_ms``, ``map_frame_320x240_s``, ``compile_s`` (total; ``compile_s_by_entry`` each) and the
 settings. Without ``--data`` (or when the folder is missing) the built-in synthetic scene is used.
 """
 
