@@ -126,6 +126,10 @@ class SceneConfig:
     frames: int = 8  # k: mapped frames whose Gaussians render a view (those that best cover it)
     layers: int = 4  # nearest Gaussians kept per pixel slot when compositing several frames
     finetune_lr_scale: float = 1.0  # learning rates of the merged-map refinement, times the mapping ones
+    # Offsets move in the refinement too. Off by default: in a merged, depth-sorted render the depth
+    # loss reaches only the front-most Gaussian, and pushing it back ratchets whole surfaces
+    # backwards (docs/method.md).
+    finetune_offsets: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

@@ -191,7 +191,7 @@ def _learning_rates(cfg: MapConfig, scale: float) -> PixelGaussians:
     )
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "layers", "lr_scale"))
+@functools.partial(jax.jit, static_argnames=("cfg", "layers", "lr_scale", "offsets"))
 def finetune_step(
     cfg: MapConfig,
     gs: PixelGaussians,
@@ -206,11 +206,13 @@ def finetune_step(
     *,
     layers: int = 4,
     lr_scale: float = 1.0,
+    offsets: bool = False,
 ) -> tuple[PixelGaussians, AdamState, Float[Array, ""]]:
     """One Adam step of the merged-map refinement: the mapping loss of the training view (``rgb``,
     ``depth``, ``valid`` at ``view_pose``) rendered from frames ``gs`` (``(k, h, w)``), whose
     Gaussians all move (padding frames, ``present`` False, do not). Learning rates are the
-    mapping's times ``lr_scale``; the measured depth stays fixed, the offset too unless learned."""
+    mapping's times ``lr_scale``; the measured depth stays fixed, the offset too unless ``offsets``
+    (and learned in mapping)."""
 
     def loss_fn(g):
         out = render_scene(g, poses, view_pose, intr, present, layers=layers)
@@ -227,6 +229,8 @@ def finetune_step(
     mu = jax.tree.map(lambda m, g: b1 * m + (1 - b1) * g, state.mu, grad)
     nu = jax.tree.map(lambda n, g: b2 * n + (1 - b2) * g * g, state.nu, grad)
     lr = _learning_rates(cfg, lr_scale)
+    if not offsets:
+        lr = dataclasses.replace(lr, offset=0.0)
 
     def update(p, m, n, a):
         cc = c[..., None] if p.ndim == 4 else c

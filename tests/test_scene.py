@@ -121,7 +121,7 @@ def test_finetune_step_is_adam_on_the_present_frames():
     valid = jnp.ones((H, W), bool)
     view = lie.exp(jnp.zeros(6, jnp.float32))
     cfg = MapConfig(offset_at_invalid=True)
-    new, state, loss = scene.finetune_step(cfg, gs, scene.adam_init(gs), poses, present, rgb, depth, valid, view, intr, layers=6)
+    new, state, loss = scene.finetune_step(cfg, gs, scene.adam_init(gs), poses, present, rgb, depth, valid, view, intr, layers=6, offsets=True)
 
     def loss_fn(g):
         out = scene.render_scene(g, poses, view, intr, present, layers=6)
@@ -137,6 +137,10 @@ def test_finetune_step_is_adam_on_the_present_frames():
     for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[1], new)), jax.tree.leaves(jax.tree.map(lambda x: x[1], gs))):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert np.asarray(state.count).tolist() == [1.0, 0.0] and np.isfinite(float(loss))
+    # by default the offsets stay as mapping left them
+    kept, _, _ = scene.finetune_step(cfg, gs, scene.adam_init(gs), poses, present, rgb, depth, valid, view, intr, layers=6)
+    np.testing.assert_array_equal(np.asarray(kept.offset), np.asarray(gs.offset))
+    np.testing.assert_allclose(np.asarray(kept.rgb[0]), np.asarray(new.rgb[0]), rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.slow
