@@ -168,8 +168,9 @@ class _Mapper:
             self.flush()
 
     def _neighbour_gaussians(self, index: int, frame: Frame) -> PixelGaussians:
-        """A neighbour's fixed Gaussians: its learned ones once mapped (paper Eq. 1), else initial."""
-        if self.cfg.map.learn_neighbours and index in self.store:
+        """A neighbour's fixed Gaussians: its learned ones once mapped (paper Eq. 1), else initial.
+        (Mapped means in this run's record: after a resume, a killed run's later files are stale.)"""
+        if self.cfg.map.learn_neighbours and index in self.scene.poses:
             return self.store.get(index)
         return jax.tree.map(np.asarray, mapping.init_gaussians(frame, self.intr, radius_init=self.cfg.map.radius_init))
 

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sgad_jax import lie, slam
+from sgad_jax import lie, slam, splat
 from sgad_jax.cli import resolve_config
 from sgad_jax.config import MapConfig
 from sgad_jax.distributed import BatchMapper
@@ -73,7 +73,7 @@ def test_batch_mapper_matches_map_step():
     for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[0], gs)), jax.tree.leaves(g_ref)):
         np.testing.assert_allclose(a, np.asarray(b), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(rgb[0], np.asarray(out_ref.rgb), atol=1e-5)
-    np.testing.assert_allclose(depth[0], np.asarray(out_ref.depth), atol=1e-5)
+    np.testing.assert_allclose(depth[0], np.asarray(splat.surface_depth(out_ref)), atol=1e-5)
 
 
 @pytest.fixture(scope="module")

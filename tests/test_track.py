@@ -221,3 +221,23 @@ def test_repeated_depth_image(scene, hold):
         E = np.linalg.inv(ds.gt_poses[gt_index]) @ poses[k]
         assert np.linalg.norm(E[:3, 3]) < 1e-3
     assert system.finish()["repeated_depth_frames"] == system.repeated
+
+
+@pytest.mark.slow
+def test_tracking_scans_over_a_sequence_like_the_host_loop(tmp_path):
+    """The tracking state is one pytree and the step is pure: `lax.scan` of `slam.track_step` over a
+    synthetic sequence's stacked depth images gives the host loop's (`run --track-only`) poses."""
+    cfg = resolve_config(None, None, overrides=["data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=6"])
+    result = pipeline.run(cfg, tmp_path / "run", track_only=True, progress=False)
+    ds = SyntheticDataset(cfg.data)
+    depths = jnp.stack([ds[i].depth for i in range(len(ds))])
+    dts = jnp.asarray(np.diff(ds.timestamps, prepend=ds.timestamps[0]), jnp.float32)
+    state = slam.init_state(cfg.track, lie.from_matrix(ds.gt_poses[0]))
+
+    def step(state, frame):
+        depth, dt = frame
+        state, T, _, _ = slam.track_step(cfg.track, state, depth, ds.intrinsics, dt, differentiable=False)
+        return state, T.as_matrix()
+
+    _, poses = jax.jit(lambda s, d, t: jax.lax.scan(step, s, (d, t)))(state, depths, dts)
+    np.testing.assert_allclose(np.asarray(poses), result.poses, atol=1e-5)
