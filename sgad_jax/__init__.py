@@ -7,7 +7,8 @@ Public API (pure functions over pytrees; see README.md):
 * tracking: :func:`frame_points` (geometry Gaussians of a depth image), :func:`track` (GICP on SE(3)
   against the geometry set), :func:`track_cost`, :func:`insert` (add non-overlapping Gaussians)
 * splatting and mapping: :func:`render_own` (a frame into its own view), :func:`render` (frames into
-  any view), :func:`init_gaussians`, :func:`map_frame`, :func:`refine_pose` (rendering-based pose
+  any view), :func:`render_scene` (the scene at any pose from its best-covering frames, chosen by
+  :func:`select_frames`; :class:`Scene` on the host), :func:`init_gaussians`, :func:`map_frame`, :func:`refine_pose` (rendering-based pose
   initialisation)
 * SLAM steps: :class:`SLAMState`, :func:`init_state`, :func:`track_step`, :func:`map_step`
 * configuration: :class:`SLAMConfig` and its stage configs, :func:`load_preset`
@@ -22,6 +23,7 @@ from sgad_jax.geometry import insert
 from sgad_jax.gicp import frame_points
 from sgad_jax.map import MapInfo, Views, init_gaussians, map_frame, refine_pose
 from sgad_jax.slam import SLAMState, init_state, map_step, track_step
+from sgad_jax.scene import Scene, render_scene, select_frames
 from sgad_jax.splat import Render, render, render_own
 from sgad_jax.track import cost as track_cost
 from sgad_jax.track import track, transform_cloud
@@ -60,4 +62,5 @@ __all__ = [
     "transform_cloud", "Frame", "GeometrySet", "InsertInfo", "Intrinsics", "PixelGaussians",
     "PointCloud", "TrackInfo", "empty_geometry", "make_frame", "make_intrinsics", "open_dataset", "run",
     "MapInfo", "Views", "init_gaussians", "map_frame", "refine_pose", "map_step", "Render", "render", "render_own",
+    "Scene", "render_scene", "select_frames",
 ]
