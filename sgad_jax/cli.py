@@ -41,6 +41,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--finetune", type=int, default=0, metavar="ITERS", help="refine the merged map for ITERS steps after the sequence, then score the held-out views again")
     r.add_argument("--devices", type=int, default=None, help="map on N devices of this host (on CPU: N host devices); default: all (CPU: 1)")
     r.add_argument("--checkpoint-every", type=int, default=25, metavar="N", help="checkpoint the run every N frames in OUT/checkpoints (0: never; default 25)")
+    r.add_argument("--on-bad-frame", choices=("stop", "skip"), default="stop", help="a frame that cannot be used (unreadable, truncated or missing file, no valid depth, NaN depth, bad timestamp): stop (exit status 2, resumable once fixed; default) or skip it (listed in metrics.json as skipped_frames)")
     r.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint (same config and data)")
     r.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="multi-process run: the coordinator's address (or $JAX_COORDINATOR_ADDRESS)")
     r.add_argument("--num-processes", type=int, default=None, help="multi-process run: number of processes (or $JAX_NUM_PROCESSES)")
@@ -231,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
         result = pipeline.run(
             cfg, args.out, track_only=args.track_only, save_renders=args.save_renders or args.mesh, progress=not args.quiet,
             resume=args.resume, checkpoint_every=args.checkpoint_every, devices=args.devices,
-            holdout_every=args.holdout_every, finetune=args.finetune,
+            holdout_every=args.holdout_every, finetune=args.finetune, on_bad_frame=args.on_bad_frame,
         )
         import jax
 

@@ -38,6 +38,7 @@ class DataConfig:
     depth_trunc: float = 0.0  # metres; depth beyond it is treated as missing; 0: keep all
     tum_max_dt: float = 0.08  # TUM rgb/depth/pose association tolerance (s), as every published number
     inpaint: bool = True  # fill missing depth by Navier-Stokes inpainting for the appearance branch
+    nonfinite_depth: str = "error"  # NaN/Inf depth pixels: a bad frame (error), or missing depth (missing)
     synthetic: SyntheticConfig = SyntheticConfig()
 
 

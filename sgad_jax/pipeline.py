@@ -39,7 +39,7 @@ from sgad_jax.distributed import BatchMapper, frames_mesh
 from sgad_jax.eval import image
 from sgad_jax.config import ConfigError, SLAMConfig, to_dict
 from sgad_jax.eval.ate import ate, rpe
-from sgad_jax.io.base import Dataset, DatasetError
+from sgad_jax.io.base import BadFrame, Dataset, DatasetError
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import write_tum_trajectory
 from sgad_jax.io.files import write_bytes, write_json
@@ -543,6 +543,7 @@ def run(
     devices: int | None = None,
     holdout_every: int = 0,
     finetune: int = 0,
+    on_bad_frame: str = "stop",
 ) -> RunResult:
     """Run SLAM over ``cfg.data`` and write the outputs to ``out_dir`` (if given).
 
@@ -553,10 +554,19 @@ def run(
     N-th frame out of mapping and scores it from the scene afterwards (``nvs_*`` in the metrics);
     ``finetune`` > 0 refines the merged map for that many steps before (see :class:`SLAM`).
 
+    A frame that cannot be used (an unreadable or truncated image, a missing file, depth with no
+    valid pixel or with NaN/Inf, mismatched sizes, a timestamp not after the previous frame's)
+    stops the run with ``on_bad_frame="stop"``: everything before it is written, and checkpointed
+    (with ``checkpoint_every`` > 0) so that ``resume`` continues from it once it is fixed. With
+    ``"skip"`` the frame is left out and listed in the metrics' ``skipped_frames``; run indices
+    (renders, Gaussians, ``per_frame``) then count the frames kept, the rows of ``trajectory.txt``.
+
     Raises:
         DatasetError: on bad input (after writing whatever was computed before it).
         ConfigError: when the checkpoint to resume was made with another config or dataset.
     """
+    if on_bad_frame not in ("stop", "skip"):
+        raise ConfigError(f"--on-bad-frame must be stop or skip, got {on_bad_frame!r}")
     ds = open_dataset(cfg.data)
     out = None if out_dir is None else pathlib.Path(out_dir)
     if out is not None:
@@ -581,31 +591,56 @@ def run(
     if out is not None and jax.process_count() > 1:
         jax.experimental.multihost_utils.sync_global_devices("sgad_jax: outputs cleared")
     mesh = None if track_only else frames_mesh(devices)
+    kept: list[int] = []  # the run index of each tracked frame (the rows of trajectory.txt)
+    skipped: list[dict] = []
     system = SLAM(
         cfg, ds.intrinsics, initial_pose=initial_pose(ds), out_dir=out, track_only=track_only, save_renders=save_renders,
-        mesh=mesh, holdout_every=holdout_every, source=ds.__getitem__,
+        mesh=mesh, holdout_every=holdout_every, source=lambda k: ds[kept[k]],
     )
+    if main:
+        for line in ds.warnings:
+            print(f"sgad-jax: warning: {line}", file=sys.stderr)
     start = 0
     if restored is not None:
-        system.restore(restored[0], restored[1]["run"])
-        start = len(system)
+        meta = restored[1]["run"]
+        system.restore(restored[0], meta)
+        kept[:] = meta.get("kept", range(len(system)))
+        skipped[:] = meta.get("skipped", [])
+        start = meta.get("next", len(system))
+
+    def save_checkpoint(next_frame: int) -> None:
+        arrays, meta = system.checkpoint_state()
+        meta.update(kept=kept, skipped=skipped, next=next_frame)
+        checkpoint.save(ckpt_root, next_frame, arrays, {"identity": identity, "run": meta})
 
     stopped = None
     rss_trace = []
     what = "tracking" if track_only else "tracking + mapping"
     bar = tqdm(total=len(ds), initial=start, desc=f"{what} {ds.name}", unit="frame", disable=not (progress and main), file=sys.stderr)
     try:
-        for i, sample in enumerate(ds.frames(start), start):
-            try:
-                system.add(sample)
-            except TrackingDiverged as err:
-                raise DatasetError(f"{ds.name} frame {sample.source_index}: {err}") from None
+        for sample in ds.frames(start, skip_bad=True):
+            i = sample.index
+            problem = sample.reason if isinstance(sample, BadFrame) else _timestamp_problem(ds, sample, system.stamps)
+            if problem and on_bad_frame == "stop":
+                stopped = problem
+                if ckpt_root is not None and checkpoint_every > 0 and i > 0:
+                    save_checkpoint(i)  # resumable from the bad frame once it is fixed
+                break
+            if problem:
+                skipped.append({"index": i, "source_index": sample.source_index, "reason": problem})
+                if main:
+                    tqdm.write(f"sgad-jax: skipped: {problem}", file=sys.stderr)
+            else:
+                try:
+                    system.add(sample)
+                except TrackingDiverged as err:
+                    raise DatasetError(f"{ds.name} frame {sample.source_index}: {err}") from None
+                kept.append(i)
             bar.update(1)
             if (i + 1) % RSS_EVERY == 0:
                 rss_trace.append([i + 1, current_rss_mb()])
             if ckpt_root is not None and checkpoint_every > 0 and (i + 1) % checkpoint_every == 0 and i + 1 < len(ds):
-                arrays, meta = system.checkpoint_state()
-                checkpoint.save(ckpt_root, i + 1, arrays, {"identity": identity, "run": meta})
+                save_checkpoint(i + 1)
     except DatasetError as err:
         stopped = str(err)
     finally:
@@ -617,7 +652,7 @@ def run(
         run_metrics.update(system.judge_scene(finetune))
     poses_np = system.trajectory()
     stamps_np = np.asarray(system.stamps, np.float64)
-    gt = ds.gt_poses[: len(poses_np)]
+    gt = ds.gt_poses[kept]
     if len(poses_np) >= 3 and np.isfinite(gt).all(axis=(1, 2)).sum() >= 3:
         err = ate(poses_np, gt)
         metrics.update(ate_rmse_cm=100 * err["rmse_m"], ate_mean_cm=100 * err["mean_m"], ate_pairs=err["pairs"])
@@ -627,7 +662,10 @@ def run(
         metrics.update(ate_rmse_cm=None, ate_mean_cm=None, rpe_rmse_cm=None, rpe_rot_rmse_deg=None)
     metrics.update(run_metrics)
     if not stopped and system.mapper is not None and ds.layout == "scannetpp":
-        metrics.update(_score_test_views(system, ds, poses_np))
+        metrics.update(_score_test_views(system, gt, poses_np, ds))
+    metrics["skipped_frames"] = skipped
+    if ds.warnings:
+        metrics["data_warnings"] = ds.warnings
     if restored is not None:
         metrics["resumed_from_frame"] = start
     metrics.update(processes=jax.process_count(), peak_rss_mb=peak_rss_mb(), rss_mb_by_frame=rss_trace, config=to_dict(cfg))
@@ -646,7 +684,16 @@ def run(
     return RunResult(poses=poses_np, timestamps=stamps_np, metrics=metrics)
 
 
-def _score_test_views(system: SLAM, ds: Dataset, est: np.ndarray) -> dict:
+def _timestamp_problem(ds: Dataset, sample, stamps: list[float]) -> str | None:
+    """Why a frame's timestamp cannot follow the previous tracked frame's (None when it can)."""
+    if not np.isfinite(sample.timestamp):
+        return f"{ds.describe(sample.source_index)}: timestamp {sample.timestamp} is not finite"
+    if stamps and sample.timestamp <= stamps[-1]:
+        return f"{ds.describe(sample.source_index)}: timestamp {sample.timestamp:.6f} is not after the previous frame's {stamps[-1]:.6f}"
+    return None
+
+
+def _score_test_views(system: SLAM, gt: np.ndarray, est: np.ndarray, ds: Dataset) -> dict:
     """A dataset's own test views (ScanNet++ DSLR ``test``) rendered from the scene at their
     ground-truth poses carried into the estimated trajectory's frame (the SE(3) alignment of the
     estimated to the ground-truth poses, least squares in rotation, then in position): ``test_*``
@@ -657,7 +704,6 @@ def _score_test_views(system: SLAM, ds: Dataset, est: np.ndarray) -> dict:
         test = ScanNetPPDataset(ds.root, dataclasses.replace(ds.cfg, start=0, stride=1, max_frames=0), split="test")
     except DatasetError as err:
         return {"test_views": f"not scored: {err}"}
-    gt = ds.gt_poses[: len(est)]
     ok = np.isfinite(gt).all(axis=(1, 2))
     if ok.sum() < 3:
         return {"test_views": "not scored: fewer than 3 frames with ground truth to align the trajectory"}

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
+import copy
 import dataclasses
 import functools
 import pathlib
@@ -23,6 +24,15 @@ from sgad_jax.types import Intrinsics, make_intrinsics
 
 class DatasetError(Exception):
     """Bad input: the message is one line naming the file and the problem."""
+
+
+@dataclasses.dataclass(frozen=True)
+class BadFrame:
+    """A frame that could not be read (yielded by :meth:`Dataset.frames` with ``skip_bad``)."""
+
+    index: int  # position in the run's frame selection
+    source_index: int  # position in the dataset's own frame list
+    reason: str  # one line naming the file and the problem
 
 
 @dataclasses.dataclass
@@ -64,8 +74,14 @@ def read_image(path: pathlib.Path, *, depth: bool = False) -> np.ndarray:
     path = pathlib.Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: file not found")
+    try:
+        data = np.fromfile(path, np.uint8)
+    except OSError as err:
+        raise DatasetError(f"{path}: cannot read ({err.strerror or err})") from None
+    if _truncated(data):
+        raise DatasetError(f"{path}: truncated image file (it ends before the image does)")
     flags = cv2.IMREAD_UNCHANGED if depth else cv2.IMREAD_COLOR
-    image = cv2.imread(str(path), flags)
+    image = cv2.imdecode(data, flags) if data.size else None
     if image is None:
         raise DatasetError(f"{path}: cannot decode image (corrupt or unsupported format)")
     if depth:
@@ -73,6 +89,17 @@ def read_image(path: pathlib.Path, *, depth: bool = False) -> np.ndarray:
             raise DatasetError(f"{path}: depth image must have one channel, got shape {image.shape}")
         return image
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def _truncated(data: np.ndarray) -> bool:
+    """Whether a PNG or JPEG file stops before its end marker. (OpenCV decodes a cut JPEG without
+    an error, filling the missing rows with grey, so the marker is the only sign.)"""
+    head, tail = bytes(data[:4]), bytes(data[-64:])
+    if head.startswith(b"\x89PNG"):
+        return b"IEND" not in tail[-16:]
+    if head.startswith(b"\xff\xd8"):
+        return b"\xff\xd9" not in tail
+    return False
 
 
 def inpaint_depth(depth: np.ndarray, radius: int = 5) -> np.ndarray:
@@ -108,6 +135,7 @@ class Dataset:
     timestamps_raw: np.ndarray  # (N,) float64
     depth_timestamps_raw: np.ndarray | None = None  # (N,) float64, when depth has stamps of its own
     gt_poses_raw: np.ndarray  # (N, 4, 4) float64, NaN where unknown
+    gt_file: pathlib.Path | None = None  # where the ground truth is read from, for messages
 
     def __init__(self, root: pathlib.Path, cfg: DataConfig):
         self.root = pathlib.Path(root)
@@ -146,7 +174,35 @@ class Dataset:
         if len(selection) == 0:
             raise DatasetError(f"{self.root}: no frames selected ({n} frames, start={cfg.start}, stride={cfg.stride})")
         self.selection = selection
+        if cfg.nonfinite_depth not in ("error", "missing"):
+            raise DatasetError(f"{self.root}: data.nonfinite_depth must be error or missing, got {cfg.nonfinite_depth!r}")
+        self.warnings = self._check_gt()
         self.intrinsics = self.intrinsics_full.scaled(cfg.downscale) if cfg.downscale > 1 else self.intrinsics_full
+
+    def _check_gt(self) -> list[str]:
+        """Ground-truth poses that are missing or hold Inf/NaN for some of the selected frames (not
+        for all: a dataset without ground truth is fine) become unknown (NaN), with one line each
+        kind saying so: a run needs no ground truth, only its ATE leaves those frames out."""
+        gt = np.array(self.gt_poses_raw, np.float64)
+        sel = gt[self.selection]
+        known = np.isfinite(sel).all(axis=(1, 2))
+        if known.all() or not np.isfinite(sel).any():
+            return []
+        missing = np.isnan(sel).all(axis=(1, 2))
+        lines = []
+        for what, bad in (("holds Inf/NaN", ~known & ~missing), ("is missing", missing)):
+            if bad.any():
+                first = int(np.flatnonzero(bad)[0])
+                lines.append(f"{self.gt_file or self.root}: the ground-truth pose {what} for {int(bad.sum())} of {len(sel)} frames (first: run frame {first}); ATE leaves them out")
+        gt[self.selection[~known]] = np.nan
+        self.gt_poses_raw = gt
+        return lines
+
+    def without(self, source_indices) -> "Dataset":
+        """A shallow copy whose selection leaves out the dataset's own frames ``source_indices``."""
+        other = copy.copy(self)
+        other.selection = self.selection[~np.isin(self.selection, np.asarray(list(source_indices), int))]
+        return other
 
     @property
     def name(self) -> str:
@@ -175,15 +231,23 @@ class Dataset:
         full = self.intrinsics_full
         if depth.shape != (full.height, full.width):
             raise DatasetError(
-                f"{self._describe(j)}: depth is {depth.shape[1]}x{depth.shape[0]}, expected {full.width}x{full.height}"
+                f"{self.describe(j)}: depth is {depth.shape[1]}x{depth.shape[0]}, expected {full.width}x{full.height}"
             )
         if rgb.shape[:2] != depth.shape:
             raise DatasetError(
-                f"{self._describe(j)}: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}"
+                f"{self.describe(j)}: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}"
             )
-        depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+        finite = np.isfinite(depth)
+        if self.cfg.nonfinite_depth != "missing" and not finite.all():
+            raise DatasetError(
+                f"{self.describe(j, depth=True)}: depth holds {int((~finite).sum())} NaN/Inf pixels "
+                "(set data.nonfinite_depth=missing if they mark missing depth)"
+            )
+        depth = np.where(finite & (depth > 0), depth, 0.0).astype(np.float32)
         if self.cfg.depth_trunc > 0:
             depth = np.where(depth <= self.cfg.depth_trunc, depth, 0.0).astype(np.float32)
+        if not depth.any():
+            raise DatasetError(f"{self.describe(j, depth=True)}: depth image has no valid pixel (all zero or beyond data.depth_trunc)")
         rgb, depth = downscale_rgbd(rgb, depth, self.cfg.downscale)
         return RGBDSample(
             index=i,
@@ -196,12 +260,13 @@ class Dataset:
             inpaint=self.cfg.inpaint,
         )
 
-    def frames(self, start: int = 0, ahead: int = 2):
+    def frames(self, start: int = 0, ahead: int = 2, *, skip_bad: bool = False):
         """``self[i]`` for ``i`` from ``start`` on, read on a background thread up to ``ahead``
         frames before they are asked for, so that decoding overlaps the caller's work.
 
         A frame that cannot be read raises its :class:`DatasetError` when its turn comes, after
-        every frame before it has been yielded.
+        every frame before it has been yielded; with ``skip_bad`` it is yielded as a
+        :class:`BadFrame` instead, and reading goes on.
         """
         with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="sgad-read") as pool:
             pending, nxt = collections.deque(), start
@@ -212,13 +277,21 @@ class Dataset:
                         nxt += 1
                     if not pending:
                         return
-                    yield pending.popleft().result()
+                    i = nxt - len(pending)
+                    try:
+                        sample = pending.popleft().result()
+                    except DatasetError as err:
+                        if not skip_bad:
+                            raise
+                        sample = BadFrame(i, int(self.selection[i]), str(err))
+                    yield sample
             finally:
                 for future in pending:
                     future.cancel()
 
-    def _describe(self, j: int) -> str:
-        """A file or folder naming frame ``j``, for error messages; loaders may override."""
+    def describe(self, j: int, *, depth: bool = False) -> str:
+        """A file or folder naming frame ``j`` (its depth image with ``depth``), for error
+        messages; loaders may override."""
         return f"{self.root} frame {j}"
 
     def __iter__(self):

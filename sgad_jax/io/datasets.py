@@ -149,8 +149,8 @@ class _FileDataset(Dataset):
         depth = _depth_metres(read_image(self.depth_paths[j], depth=True), self.depth_scale)
         return read_image(self.rgb_paths[j]), depth
 
-    def _describe(self, j):
-        return f"{self.rgb_paths[j]} (depth {self.depth_paths[j]})"
+    def describe(self, j, *, depth=False):
+        return str(self.depth_paths[j]) if depth else f"{self.rgb_paths[j]} (depth {self.depth_paths[j]})"
 
 
 # --- TUM RGB-D -----------------------------------------------------------------------------------
@@ -189,7 +189,8 @@ class TUMDataset(_FileDataset):
                 continue
             if t_pose is not None and abs(t_pose[k] - t) >= cfg.tum_max_dt:
                 continue
-            if last is None or t - last > 1.0 / TUM_FRAME_RATE:
+            # A stamp that goes back in time is kept, for the run to report it as a bad frame.
+            if last is None or t - last > 1.0 / TUM_FRAME_RATE or t <= last:
                 kept.append((i, j, k))
                 last = t
         if not kept:
@@ -202,6 +203,7 @@ class TUMDataset(_FileDataset):
         # (two colour frames can even share one depth image), which the motion model needs.
         self.depth_timestamps_raw = np.array([t_depth[j] for _, j, _ in kept], np.float64)
         self.gt_poses_raw = poses[[k for _, _, k in kept]] if t_pose is not None else _no_gt(len(kept))
+        self.gt_file = gt_file if t_pose is not None else None
         self.depth_scale = cfg.depth_scale if cfg.depth_scale > 0 else 5000.0
         match = re.search(r"(?:freiburg|fr)([123])", self.root.resolve().name.lower())
         fx, fy, cx, cy = TUM_INTRINSICS[int(match.group(1)) if match else 1]
@@ -255,8 +257,9 @@ class ReplicaDataset(_FileDataset):
                 raise DatasetError(f"{traj}: malformed, expected 16 numbers (row-major 4x4) per line")
             poses = values.reshape(-1, 4, 4)
             for i, n in enumerate(numbers):
-                if n < len(poses) and np.isfinite(poses[n]).all():
+                if n < len(poses):
                     self.gt_poses_raw[i] = poses[n]
+            self.gt_file = traj
 
         scale = 6553.5
         params = next((p for d in (self.root, self.root.parent) if (p := d / "cam_params.json").is_file()), None)
@@ -451,7 +454,7 @@ class ScanNetPPDataset(_FileDataset):
         raw = read_image(self.depth_paths[j], depth=True)
         if rgb.shape[:2] != raw.shape:
             raise DatasetError(
-                f"{self._describe(j)}: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is {raw.shape[1]}x{raw.shape[0]}"
+                f"{self.describe(j)}: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is {raw.shape[1]}x{raw.shape[0]}"
             )
         if rgb.shape[1::-1] != self.size:
             rgb = cv2.resize(rgb.astype(np.float32), self.size, interpolation=cv2.INTER_LINEAR).astype(np.uint8)

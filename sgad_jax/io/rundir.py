@@ -92,10 +92,12 @@ class Run:
 
     @functools.cached_property
     def dataset(self):
-        """The run's dataset (same frame selection and downscale), opened from its config."""
+        """The run's dataset (same frame selection and downscale), opened from its config; frame
+        ``i`` is the trajectory's row ``i`` (the frames the run skipped are left out)."""
         from sgad_jax.io.datasets import open_dataset
 
-        return open_dataset(self.data_config)
+        skipped = [r["source_index"] for r in self.metrics.get("skipped_frames", [])]
+        return open_dataset(self.data_config).without(skipped)
 
     @functools.cached_property
     def intrinsics(self) -> Intrinsics:
