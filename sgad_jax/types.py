@@ -54,8 +54,8 @@ class Intrinsics:
 
 def make_intrinsics(fx, fy, cx, cy, width: int, height: int) -> Intrinsics:
     f32 = lambda v: np.float32(v)  # noqa: E731
-    if width <= 0 or height <= 0 or fx <= 0 or fy <= 0:
-        raise ValueError(f"invalid intrinsics fx={fx} fy={fy} width={width} height={height}")
+    if width <= 0 or height <= 0 or not (fx > 0 and fy > 0 and np.isfinite([fx, fy, cx, cy]).all()):
+        raise ValueError(f"invalid intrinsics fx={fx} fy={fy} cx={cx} cy={cy} width={width} height={height}")
     return Intrinsics(f32(fx), f32(fy), f32(cx), f32(cy), int(width), int(height))
 
 
