@@ -54,7 +54,11 @@ class TrackConfig:
     min_depth: float = 0.1
     max_depth: float = 0.0  # 0: no limit
     voxel_size: float = 0.02  # geometry set: one Gaussian per voxel; a point in an occupied voxel overlaps T
-    capacity: int = 1 << 18  # geometry set capacity (Gaussians); overflow is reported, never silent
+    capacity: int = 1 << 18  # geometry set capacity on the device (Gaussians); see sgad_jax.paging
+    # The set is paged (far entries to host memory, the set rebuilt around the camera) when fuller
+    # than page_high of its capacity, down to page_low; also when the camera nears its key cube's edge.
+    page_high: float = 0.75
+    page_low: float = 0.5
     max_iterations: int = 30  # Gauss-Newton steps per solver level (see coarse)
     tolerance: float = 5e-4  # stop when the update's translation (m) and rotation (rad) fall below it
     max_correspondence: float = 0.05  # metres between a point and its match in T

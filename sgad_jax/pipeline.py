@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 import jax.experimental.multihost_utils
 
-from sgad_jax import checkpoint, lie, scene, slam, splat
+from sgad_jax import checkpoint, lie, paging, scene, slam, splat
 from sgad_jax import map as mapping
 from sgad_jax.distributed import BatchMapper, frames_mesh
 from sgad_jax.eval import image
@@ -371,6 +371,8 @@ class SLAM:
         self.holdout: list[int] = []  # run indices of the held-out frames
         self._held: dict[int, object] = {}  # their samples, when there is no source to read them again
         self.state = slam.init_state(cfg.track, initial_pose)
+        self.pager = paging.Pager(cfg.track, np.asarray(self.state.geom.origin))
+        self.dropped = {"overflow": 0, "out_of_range": 0}  # points T could not take (InsertInfo)
         self.mapper = None if track_only else _Mapper(cfg, intr, None if out_dir is None else pathlib.Path(out_dir), save_renders, mesh)
         render_init = self.mapper is not None and cfg.map.render_init
         self._predict = jax.jit(slam.predict, static_argnums=0) if render_init else None
@@ -435,13 +437,17 @@ class SLAM:
             self._step = compile_step(self.cfg.track, self.state, depth, self.intr, dt, guess)
             self.compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        state, T, info, _ = self._step(self.state, depth, self.intr, dt, guess)
+        state, T, info, ins = self._step(self.state, depth, self.intr, dt, guess)
         pose = np.asarray(T.as_matrix())
         if not np.isfinite(pose).all():
             raise TrackingDiverged("tracking diverged (non-finite pose)")
-        self.state = state
         self.times.append(time.perf_counter() - t0)
         self.iters.append(int(info.iterations))
+        self.dropped["overflow"] += int(ins.overflow)
+        self.dropped["out_of_range"] += int(ins.out_of_range)
+        if self.pager.due(state.geom, pose[:3, 3]):
+            state = dataclasses.replace(state, geom=self.pager.page(state.geom, pose, len(self.poses)))
+        self.state = state
         return pose
 
     def finish(self) -> dict:
@@ -455,7 +461,10 @@ class SLAM:
             "track_ms_median": 1000 * float(np.median(steady)) if steady else None,
             "track_iterations_mean": float(np.mean(self.iters)) if self.iters else None,
             "repeated_depth_frames": self.repeated,
-            "geometry_gaussians": int(self.state.geom.count),
+            "geometry_gaussians": int(self.state.geom.count) + self.pager.host_entries,
+            "geometry_on_device": int(self.state.geom.count),
+            "geometry_pages": self.pager.events,
+            "geometry_dropped_points": dict(self.dropped),
             "compile_s": self.compile_s,
         }
         if self.mapper is None:
@@ -505,7 +514,9 @@ class SLAM:
             stamps=np.asarray(self.stamps, np.float64),
             depth_stamps=np.asarray(self.depth_stamps, np.float64),
         )
-        meta = {"frames": len(self.poses), "times": self.times, "iters": self.iters, "holdout": self.holdout}
+        if self.pager.host_entries:  # orbax does not save empty arrays
+            arrays["geometry_archive"] = self.pager.archive
+        meta = {"frames": len(self.poses), "times": self.times, "iters": self.iters, "holdout": self.holdout, "pages": self.pager.events, "dropped": self.dropped}
         if self.mapper is not None:
             more, meta["mapper"] = self.mapper.state()
             arrays.update(more)
@@ -517,6 +528,8 @@ class SLAM:
         self.stamps = [float(t) for t in arrays["stamps"]]
         self.depth_stamps = [float(t) for t in arrays["depth_stamps"]]
         self.times, self.iters, self.holdout = list(meta["times"]), list(meta["iters"]), list(meta["holdout"])
+        self.pager.archive = np.asarray(arrays.get("geometry_archive", np.zeros((12, 0))), np.float32).reshape(12, -1)
+        self.pager.events, self.dropped = list(meta.get("pages", [])), dict(meta.get("dropped", self.dropped))
         if self.mapper is not None:
             self.mapper.restore(arrays, meta["mapper"])
 
