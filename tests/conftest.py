@@ -22,3 +22,18 @@ def shared(name: str) -> pathlib.Path:
     if not path.is_dir():
         pytest.skip(f"real data {path} not available (set SGAD_SHARED_DATA to the shared/data folder)")
     return path
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop each test module's compiled programs when it ends. XLA:CPU maps every executable's
+    code into memory, and one process running the whole suite otherwise accumulates tens of
+    thousands of mappings, near the kernel's per-process limit (vm.max_map_count, 65530), past
+    which compilation crashes."""
+    yield
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
