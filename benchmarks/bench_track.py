@@ -207,6 +207,7 @@ def main() -> None:
         "small_gicp_voxel_m": args.peer_voxel,
         "threads": args.threads,
         "jax_backend": jax.default_backend(),
+        "device": jax.devices()[0].device_kind,
     }
     json.dump(out, sys.stdout, indent=2)
     print()
