@@ -78,13 +78,14 @@ class TrackConfig:
     # accuracy (docs/method.md).
     extrapolation: float = 4.0
     # Tracking health (docs/method.md, "Tracking health"): a solved pose fails when it is not finite,
-    # when under min_inlier_share of the frame's points found a match, when it moved more than
+    # when its share of matched points is under min_inlier_share times the last accepted frame's
+    # (the share depends on point density against the voxels), when it moved more than
     # max_jump (metres, degrees) from the guess, or when its Hessian's smallest / largest eigenvalue
     # is under min_conditioning. A failed frame is relocalised (relocalise_*); if that fails too it
     # keeps the guess and adds nothing to T.
     judge: bool = True
     min_inlier_share: float = 0.3
-    max_jump: tuple[float, ...] = (0.1, 5.0)
+    max_jump: tuple[float, ...] = (0.15, 8.0)
     min_conditioning: float = 1e-4
     relocalise: bool = True
     relocalise_points: int = 1024  # frame points matched by brute force

@@ -338,7 +338,7 @@ def failure_reason(cfg, info) -> str:
     if bits & FAIL_NONFINITE:
         parts.append("non-finite pose")
     if bits & FAIL_INLIERS:
-        parts.append(f"few inliers ({int(info.inliers) / max(int(info.points), 1):.2f} < {cfg.min_inlier_share:.2f})")
+        parts.append(f"few inliers ({int(info.inliers) / max(int(info.points), 1):.2f} < {float(info.inlier_floor):.2f})")
     if bits & FAIL_JUMP:
         t, r = (float(v) for v in np.asarray(info.jump))
         parts.append(f"jump ({t:.3f} m, {np.degrees(r):.1f} deg > {cfg.max_jump[0]:g} m, {cfg.max_jump[1]:g} deg)")

@@ -30,6 +30,7 @@ class SLAMState:
     geom: GeometrySet
     T_prev: lie.SE3  # pose of the last tracked frame
     velocity: Float[Array, "6"]  # body-frame twist per unit time of the last motion with dt > 0
+    inlier_share: Float[Array, ""]  # of the last accepted frame tracked against T (0 before one)
 
 
 def init_state(cfg: TrackConfig, T_init: lie.SE3 | None = None) -> SLAMState:
@@ -37,7 +38,7 @@ def init_state(cfg: TrackConfig, T_init: lie.SE3 | None = None) -> SLAMState:
     T_init = lie.identity() if T_init is None else T_init
     origin = T_init.translation()
     geom = empty_geometry(cfg.capacity, cfg.voxel_size, origin)
-    return SLAMState(geom=geom, T_prev=T_init, velocity=jnp.zeros(6))
+    return SLAMState(geom=geom, T_prev=T_init, velocity=jnp.zeros(6), inlier_share=jnp.zeros(()))
 
 
 def predict(cfg: TrackConfig, state: SLAMState, dt: Float[Array, ""]) -> lie.SE3:
@@ -59,13 +60,17 @@ def _jump(T: lie.SE3, ref: lie.SE3) -> Float[Array, "2"]:
     return jnp.stack([jnp.linalg.norm(rel.translation()), jnp.linalg.norm(rel.rotation().log())])
 
 
+def _share(info: TrackInfo) -> Float[Array, ""]:
+    return info.inliers / jnp.maximum(info.points, 1)
+
+
 def judge(cfg: TrackConfig, info: TrackInfo, T: lie.SE3, jump: Float[Array, "2"], bound: tuple[float, ...]) -> Int[Array, ""]:
     """Failure bits (``sgad_jax.types.FAIL_*``, 0: healthy) of a solved pose ``T`` that moved
-    ``jump`` (metres, radians) from where its solve started; ``bound`` in metres and degrees."""
-    share = info.inliers / jnp.maximum(info.points, 1)
+    ``jump`` (metres, radians) from where its solve started; ``bound`` in metres and degrees; the
+    inlier share must reach ``info.inlier_floor``."""
     bits = [
         (~_finite(T), FAIL_NONFINITE),
-        (~(share >= cfg.min_inlier_share), FAIL_INLIERS),
+        (~(_share(info) >= info.inlier_floor), FAIL_INLIERS),
         (~((jump[0] <= bound[0]) & (jump[1] <= jnp.radians(bound[1]))), FAIL_JUMP),
         (~(info.conditioning >= cfg.min_conditioning), FAIL_DEGENERATE),
     ]
@@ -93,10 +98,11 @@ def track_step(
     per frame, because TUM's depth and colour streams are not synchronised and consecutive frames
     can be 0, 1 or 2 depth images apart.
 
-    With ``cfg.judge`` the solved pose is judged (:func:`judge`: finite, inlier share, jump from the
-    guess, conditioning). A failed pose is relocalised (:func:`sgad_jax.track.relocalise`, then
-    GICP from its result, judged again, ``cfg.relocalise``); only on that branch of a ``lax.cond``,
-    so healthy frames pay nothing for it. If that fails too, the frame keeps the guess (the
+    With ``cfg.judge`` the solved pose is judged (:func:`judge`: finite, inlier share against
+    ``cfg.min_inlier_share`` times the last accepted frame's, jump from the guess, conditioning).
+    A failed pose is relocalised (:func:`sgad_jax.track.relocalise`, then GICP from its result,
+    judged again, ``cfg.relocalise``); only on that branch of a ``lax.cond``, so healthy frames
+    pay nothing for it. If that fails too, the frame keeps the guess (the
     previous pose if the guess is not finite), adds nothing to T and leaves the velocity as it
     was. A relocalised frame keeps the velocity too (its jump is no motion to extrapolate). The
     failure bits and ``recovered`` are in the returned info. ``key`` draws the relocalisation's
@@ -110,7 +116,11 @@ def track_step(
     cloud = gicp.frame_points(cfg, depth, intr)
     guess = predict(cfg, state, dt) if guess is None else guess
     guess = _select(_finite(guess), guess, state.T_prev)
+    # The share of matched points depends on how dense they are against the voxels (low-resolution
+    # images match few), so a frame is judged against the share of the last accepted one.
+    floor = cfg.min_inlier_share * state.inlier_share
     T, info = solver(cfg, state.geom, cloud, guess)
+    info = dataclasses.replace(info, inlier_floor=floor)
     jump = _jump(T, guess)
     judged = cfg.judge & (state.geom.count > 0)  # the first frame has nothing to be judged against
     failure = jnp.where(judged, judge(cfg, info, T, jump, cfg.max_jump), 0)
@@ -120,16 +130,17 @@ def track_step(
         k = jax.random.fold_in(jax.random.key(0), state.geom.count) if key is None else key
         T0 = relocalise(cfg, state.geom, cloud, guess, key=k)
         T1, info1 = solver(cfg, state.geom, cloud, T0)
+        info1 = dataclasses.replace(info1, inlier_floor=floor)
         bad = judge(cfg, info1, T1, _jump(T1, T0), cfg.max_jump) | judge(cfg, info1, T1, _jump(T1, guess), cfg.relocalise_max_move)
-        return _select(bad == 0, T1, guess), bad == 0, info.iterations + info1.iterations
+        return _select(bad == 0, T1, guess), bad == 0, info.iterations + info1.iterations, _share(info1)
 
     def keep(_):
-        return _select(failure == 0, T, guess), jnp.zeros((), bool), info.iterations
+        return _select(failure == 0, T, guess), jnp.zeros((), bool), info.iterations, _share(info)
 
     if cfg.relocalise:
-        T, recovered, iterations = jax.lax.cond(failure != 0, recover, keep, None)
+        T, recovered, iterations, share = jax.lax.cond(failure != 0, recover, keep, None)
     else:
-        T, recovered, iterations = keep(None)
+        T, recovered, iterations, share = keep(None)
     info = dataclasses.replace(info, recovered=recovered, iterations=iterations)
     healthy = failure == 0
     accepted = healthy | recovered
@@ -138,7 +149,8 @@ def track_step(
     moved = (dt > 0) & healthy
     velocity = jnp.where(moved, (state.T_prev.inverse() @ T).log() / jnp.where(moved, dt, 1.0), state.velocity)
     velocity = jnp.where(jnp.all(jnp.isfinite(velocity)), velocity, state.velocity)
-    new = SLAMState(geom=geom, T_prev=T, velocity=velocity)
+    share = jnp.where(accepted & (state.geom.count > 0), share, state.inlier_share)
+    new = SLAMState(geom=geom, T_prev=T, velocity=velocity, inlier_share=share)
     return new, T, info, ins
 
 

@@ -217,7 +217,7 @@ def _gauss_newton(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: li
     T, it, done, c, n_in, _, H = jax.lax.while_loop(more, outer, init)
     info = TrackInfo(
         iterations=it, converged=done, cost=c, inliers=n_in, points=jnp.sum(cloud.valid).astype(jnp.int32),
-        conditioning=conditioning(H), failure=jnp.zeros((), jnp.int32), recovered=jnp.zeros((), bool), jump=jnp.zeros(2),
+        conditioning=conditioning(H), failure=jnp.zeros((), jnp.int32), recovered=jnp.zeros((), bool), jump=jnp.zeros(2), inlier_floor=jnp.zeros(()),
     )
     return T, info
 

@@ -6,6 +6,7 @@ geometry set built by inserting every frame at its ground-truth pose.
 
 import dataclasses
 import functools
+import re
 
 import jax
 import jax.numpy as jnp
@@ -132,7 +133,8 @@ def test_invalid_depth_gives_a_finite_pose_and_a_record():
         system.add(dataclasses.replace(ds[i], depth=depths[i]))
     failures = system.finish()["tracking_failures"]
     assert [f["frame"] for f in failures] == [2, 3]
-    assert all(f["reason"].startswith("few inliers (0.00 < 0.30)") and f["recovered"] is False for f in failures)
+    # The floor is 0.3 times the last accepted frame's share (about 0.7 here).
+    assert all(re.match(r"few inliers \(0\.00 < 0\.[12]\d\)", f["reason"]) and f["recovered"] is False for f in failures), failures
     arrays, meta = system.checkpoint_state()
     again = SLAM(SLAMConfig(track=CFG), ds.intrinsics, track_only=True)
     again.restore(arrays, meta)
