@@ -102,10 +102,11 @@ def track_step(
     ``cfg.min_inlier_share`` times the last accepted frame's, jump from the guess, conditioning).
     A failed pose is relocalised (:func:`sgad_jax.track.relocalise`, then GICP from its result,
     judged again, ``cfg.relocalise``); only on that branch of a ``lax.cond``, so healthy frames
-    pay nothing for it. If that fails too, the frame keeps the guess (the
-    previous pose if the guess is not finite), adds nothing to T and leaves the velocity as it
-    was. A relocalised frame keeps the velocity too (its jump is no motion to extrapolate). The
-    failure bits and ``recovered`` are in the returned info. ``key`` draws the relocalisation's
+    pay nothing for it. If that fails too, the frame keeps the guess (the previous pose if the
+    guess is not finite), adds nothing to T and leaves the velocity as it was. A relocalised
+    frame keeps the velocity too (its jump is no motion to extrapolate). A non-finite pose is a
+    failure even with ``cfg.judge`` off. The failure bits and ``recovered`` are in the returned
+    info. ``key`` draws the relocalisation's
     samples (default: a key folded with T's size, so a run is reproducible).
 
     With ``differentiable=False`` the pose comes from the solver alone, without the implicit-gradient
@@ -123,7 +124,8 @@ def track_step(
     info = dataclasses.replace(info, inlier_floor=floor)
     jump = _jump(T, guess)
     judged = cfg.judge & (state.geom.count > 0)  # the first frame has nothing to be judged against
-    failure = jnp.where(judged, judge(cfg, info, T, jump, cfg.max_jump), 0)
+    # A non-finite pose fails even unjudged: NaN must never reach a pose or the state.
+    failure = jnp.where(judged, judge(cfg, info, T, jump, cfg.max_jump), jnp.where(_finite(T), 0, FAIL_NONFINITE))
     info = dataclasses.replace(info, failure=failure, jump=jnp.where(jnp.isfinite(jump), jump, jnp.inf))
 
     def recover(_):

@@ -19,7 +19,7 @@ from sgad_jax.config import DataConfig, SLAMConfig, SyntheticConfig, TrackConfig
 from sgad_jax.io.synthetic import SyntheticDataset, jump_pose
 from sgad_jax.pipeline import SLAM
 from sgad_jax.track import transform_cloud
-from sgad_jax.types import FAIL_INLIERS, FAIL_NONFINITE, empty_geometry
+from sgad_jax.types import FAIL_DEGENERATE, FAIL_INLIERS, FAIL_JUMP, FAIL_NONFINITE, TrackInfo, empty_geometry
 
 # 320 x 240 at stride 4: T dense enough for 2 cm voxels (at 80 x 60 even clean frames lack matches).
 CFG = TrackConfig(stride=4, k=15, capacity=1 << 16)
@@ -146,3 +146,41 @@ def test_jump_pose_is_the_configured_displacement():
     assert np.linalg.norm(M[:3, 3]) == pytest.approx(0.2)
     assert np.degrees(np.arccos((np.trace(M[:3, :3]) - 1) / 2)) == pytest.approx(10.0, rel=1e-6)
     np.testing.assert_allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+def test_judge_sets_one_bit_per_reason():
+    """Each criterion alone sets its bit; a healthy solve sets none."""
+    cfg = TrackConfig()
+    info = TrackInfo(
+        iterations=jnp.int32(5), converged=jnp.bool_(True), cost=jnp.float32(1.0), inliers=jnp.int32(900),
+        points=jnp.int32(1000), conditioning=jnp.float32(1e-2), failure=jnp.int32(0), recovered=jnp.bool_(False),
+        jump=jnp.zeros(2), inlier_floor=jnp.float32(0.3 * 0.95),
+    )
+    T = lie.identity()
+    ok_jump = jnp.array([0.05, np.radians(3.0)])
+    assert int(slam.judge(cfg, info, T, ok_jump, cfg.max_jump)) == 0
+    nan_T = lie.SE3(jnp.full(7, jnp.nan))
+    assert int(slam.judge(cfg, info, nan_T, ok_jump, cfg.max_jump)) & FAIL_NONFINITE
+    few = dataclasses.replace(info, inliers=jnp.int32(200))
+    assert int(slam.judge(cfg, few, T, ok_jump, cfg.max_jump)) == FAIL_INLIERS
+    assert int(slam.judge(cfg, info, T, jnp.array([0.2, 0.0]), cfg.max_jump)) == FAIL_JUMP
+    assert int(slam.judge(cfg, info, T, jnp.array([0.0, np.radians(10.0)]), cfg.max_jump)) == FAIL_JUMP
+    flat = dataclasses.replace(info, conditioning=jnp.float32(1e-6))
+    assert int(slam.judge(cfg, flat, T, ok_jump, cfg.max_jump)) == FAIL_DEGENERATE
+    empty = dataclasses.replace(info, inliers=jnp.int32(0), points=jnp.int32(0))
+    assert int(slam.judge(cfg, empty, T, ok_jump, cfg.max_jump)) == FAIL_INLIERS
+
+
+@pytest.mark.slow
+def test_non_finite_guess_falls_back_to_the_previous_pose():
+    """A NaN guess (a broken rendering-based initialisation, say) is replaced by the previous pose,
+    from which GICP tracks the frame as usual."""
+    ds = _room(frames=3)
+    state = slam.init_state(CFG, lie.from_matrix(ds.gt_poses[0]))
+    for i in range(2):
+        state, _, _, _ = STEP(CFG, state, jnp.asarray(ds[i].depth), ds.intrinsics, jnp.float32(i / 30))
+    nan_guess = lie.SE3(jnp.full(7, jnp.nan))
+    state, T, info, _ = STEP(CFG, state, jnp.asarray(ds[2].depth), ds.intrinsics, jnp.float32(1 / 30), nan_guess)
+    assert np.isfinite(np.asarray(T.as_matrix())).all() and np.isfinite(np.asarray(state.velocity)).all()
+    t, r = _errors(np.asarray(T.as_matrix()), ds.gt_poses[2])
+    assert int(info.failure) == 0 and t < 1e-3 and r < 0.05
