@@ -5,7 +5,8 @@ Public API (pure functions over pytrees; see README.md):
 * types: :class:`Intrinsics`, :class:`Frame`, :class:`PixelGaussians`, :class:`GeometrySet`,
   :class:`PointCloud`, :class:`TrackInfo`, :class:`InsertInfo`
 * tracking: :func:`frame_points` (geometry Gaussians of a depth image), :func:`track` (GICP on SE(3)
-  against the geometry set), :func:`track_cost`, :func:`insert` (add non-overlapping Gaussians)
+  against the geometry set), :func:`track_cost`, :func:`insert` (add non-overlapping Gaussians),
+  :func:`relocalise` (wide-basin ICP for a frame GICP lost)
 * splatting and mapping: :func:`render_own` (a frame into its own view), :func:`render` (frames into
   any view), :func:`render_scene` (the scene at any pose from its best-covering frames, chosen by
   :func:`select_frames`; :class:`Scene` on the host), :func:`init_gaussians`, :func:`map_frame`, :func:`refine_pose` (rendering-based pose
@@ -26,7 +27,7 @@ from sgad_jax.slam import SLAMState, init_state, map_step, track_step
 from sgad_jax.scene import Scene, render_scene, select_frames
 from sgad_jax.splat import Render, render, render_own
 from sgad_jax.track import cost as track_cost
-from sgad_jax.track import track, transform_cloud
+from sgad_jax.track import relocalise, track, transform_cloud
 from sgad_jax.types import (
     Frame,
     GeometrySet,
@@ -58,7 +59,7 @@ def run(cfg: SLAMConfig, out_dir=None, **kwargs):
 __version__ = "0.1.0"
 __all__ = [
     "DataConfig", "ExportConfig", "MapConfig", "MeshConfig", "SLAMConfig", "SyntheticConfig", "TrackConfig", "load_preset",
-    "insert", "frame_points", "SLAMState", "init_state", "track_step", "track_cost", "track",
+    "insert", "frame_points", "SLAMState", "init_state", "track_step", "track_cost", "track", "relocalise",
     "transform_cloud", "Frame", "GeometrySet", "InsertInfo", "Intrinsics", "PixelGaussians",
     "PointCloud", "TrackInfo", "empty_geometry", "make_frame", "make_intrinsics", "open_dataset", "run",
     "MapInfo", "Views", "init_gaussians", "map_frame", "refine_pose", "map_step", "Render", "render", "render_own",

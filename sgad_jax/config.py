@@ -23,6 +23,10 @@ class SyntheticConfig:
     height: int = 240
     depth_noise: float = 0.0  # std of Gaussian depth noise, metres per metre of depth
     seed: int = 0
+    # A sudden camera jump (a dropped stretch of frames, a knocked camera) to test tracking health:
+    # from frame jump_frame on (0: never) the camera is displaced by jump = (metres, degrees).
+    jump_frame: int = 0
+    jump: tuple[float, ...] = (0.2, 10.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,12 +82,31 @@ class TrackConfig:
     # (Aitken extrapolation, sgad_jax.track._stretch); 1: plain Gauss-Newton. Fewer steps, same
     # accuracy (docs/method.md).
     extrapolation: float = 4.0
+    # Tracking health (docs/method.md, "Tracking health"): a solved pose fails when it is not finite,
+    # when its share of matched points is under min_inlier_share times the last accepted frame's
+    # (the share depends on point density against the voxels), when it moved more than
+    # max_jump (metres, degrees) from the guess, or when its Hessian's smallest / largest eigenvalue
+    # is under min_conditioning. A failed frame is relocalised (relocalise_*); if that fails too it
+    # keeps the guess and adds nothing to T.
+    judge: bool = True
+    min_inlier_share: float = 0.3
+    max_jump: tuple[float, ...] = (0.15, 8.0)
+    min_conditioning: float = 1e-4
+    relocalise: bool = True
+    relocalise_points: int = 1024  # frame points matched by brute force
+    relocalise_map_points: int = 4096  # points of T in front of the guessed camera, drawn at random
+    relocalise_iterations: int = 40
+    relocalise_gate: tuple[float, ...] = (0.5, 0.05)  # correspondence gate (metres), first and last iteration
+    relocalise_max_move: tuple[float, ...] = (1.0, 45.0)  # farthest a relocalised pose may be from the guess (metres, degrees)
 
     def __post_init__(self):
         if any(c < 1 for c in self.coarse):
             raise ConfigError(f"track.coarse: each level takes every c-th point, c >= 1; got {self.coarse}")
         if not self.extrapolation >= 1.0:
             raise ConfigError(f"track.extrapolation: an update can only be lengthened, >= 1; got {self.extrapolation}")
+        for name in ("max_jump", "relocalise_gate", "relocalise_max_move"):
+            if len(getattr(self, name)) != 2 or min(getattr(self, name)) <= 0:
+                raise ConfigError(f"track.{name}: two positive numbers, got {getattr(self, name)}")
 
 
 @dataclasses.dataclass(frozen=True)

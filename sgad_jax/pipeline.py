@@ -44,7 +44,7 @@ from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import write_tum_trajectory
 from sgad_jax.io.files import write_bytes, write_json
 from sgad_jax.io.store import GaussianStore
-from sgad_jax.types import Frame, PixelGaussians, make_frame
+from sgad_jax.types import FAIL_DEGENERATE, FAIL_INLIERS, FAIL_JUMP, FAIL_NONFINITE, Frame, PixelGaussians, make_frame
 
 
 @dataclasses.dataclass
@@ -332,6 +332,21 @@ def _blank_frame(h: int, w: int) -> Frame:
     return Frame(rgb=np.zeros((h, w, 3), np.float32), depth=np.zeros((h, w), np.float32), depth_filled=np.zeros((h, w), np.float32), valid=np.zeros((h, w), bool))
 
 
+def failure_reason(cfg, info) -> str:
+    """The judgement of a failed tracking step in words, e.g. ``few inliers (0.12 < 0.30)``."""
+    bits, parts = int(info.failure), []
+    if bits & FAIL_NONFINITE:
+        parts.append("non-finite pose")
+    if bits & FAIL_INLIERS:
+        parts.append(f"few inliers ({int(info.inliers) / max(int(info.points), 1):.2f} < {float(info.inlier_floor):.2f})")
+    if bits & FAIL_JUMP:
+        t, r = (float(v) for v in np.asarray(info.jump))
+        parts.append(f"jump ({t:.3f} m, {np.degrees(r):.1f} deg > {cfg.max_jump[0]:g} m, {cfg.max_jump[1]:g} deg)")
+    if bits & FAIL_DEGENERATE:
+        parts.append(f"degenerate ({float(info.conditioning):.1e} < {cfg.min_conditioning:.1e})")
+    return ", ".join(parts)
+
+
 class TrackingDiverged(DatasetError):
     """A frame's pose came out non-finite."""
 
@@ -382,6 +397,7 @@ class SLAM:
         self.depth_stamps: list[float] = []
         self.times: list[float] = []
         self.iters: list[int] = []
+        self.failures: list[dict] = []  # tracking_failures of the metrics: frame, reason, recovered
         self._last_depth: np.ndarray | None = None
         self.compile_s: float | None = None
 
@@ -404,8 +420,12 @@ class SLAM:
         of a guess's offset along directions the geometry constrains weakly (on 7-Scenes about 1 cm
         per repeated frame, where the ground truth does not move).
 
+        A frame whose tracking is judged a failure (``slam.track_step``) is recorded in
+        :attr:`failures` and, unless relocalised, gets the guess as its pose.
+
         Raises:
-            TrackingDiverged: the pose came out non-finite; the system cannot continue.
+            TrackingDiverged: the pose came out non-finite despite the fallbacks (a bug); the system
+                cannot continue.
         """
         frame = None if self.mapper is None else host_frame(sample)
         if self.cfg.track.hold_repeated_depth and repeats(sample.depth, self._last_depth):
@@ -443,6 +463,8 @@ class SLAM:
             raise TrackingDiverged("tracking diverged (non-finite pose)")
         self.times.append(time.perf_counter() - t0)
         self.iters.append(int(info.iterations))
+        if int(info.failure):
+            self.failures.append({"frame": len(self.poses), "reason": failure_reason(self.cfg.track, info), "recovered": bool(info.recovered)})
         self.dropped["overflow"] += int(ins.overflow)
         self.dropped["out_of_range"] += int(ins.out_of_range)
         if self.pager.due(state.geom, pose[:3, 3]):
@@ -461,6 +483,7 @@ class SLAM:
             "track_ms_median": 1000 * float(np.median(steady)) if steady else None,
             "track_iterations_mean": float(np.mean(self.iters)) if self.iters else None,
             "repeated_depth_frames": self.repeated,
+            "tracking_failures": list(self.failures),
             "geometry_gaussians": int(self.state.geom.count) + self.pager.host_entries,
             "geometry_on_device": int(self.state.geom.count),
             "geometry_pages": self.pager.events,
@@ -516,7 +539,7 @@ class SLAM:
         )
         if self.pager.host_entries:  # orbax does not save empty arrays
             arrays["geometry_archive"] = self.pager.archive
-        meta = {"frames": len(self.poses), "times": self.times, "iters": self.iters, "holdout": self.holdout, "pages": self.pager.events, "dropped": self.dropped}
+        meta = {"frames": len(self.poses), "times": self.times, "iters": self.iters, "holdout": self.holdout, "pages": self.pager.events, "dropped": self.dropped, "tracking_failures": self.failures}
         if self.mapper is not None:
             more, meta["mapper"] = self.mapper.state()
             arrays.update(more)
@@ -530,6 +553,7 @@ class SLAM:
         self.times, self.iters, self.holdout = list(meta["times"]), list(meta["iters"]), list(meta["holdout"])
         self.pager.archive = np.asarray(arrays.get("geometry_archive", np.zeros((12, 0))), np.float32).reshape(12, -1)
         self.pager.events, self.dropped = list(meta.get("pages", [])), dict(meta.get("dropped", self.dropped))
+        self.failures = list(meta.get("tracking_failures", []))
         if self.mapper is not None:
             self.mapper.restore(arrays, meta["mapper"])
 

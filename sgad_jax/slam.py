@@ -10,13 +10,16 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from sgad_jax import geometry, gicp, lie, splat
 from sgad_jax import map as mapping
 from sgad_jax.config import MapConfig, TrackConfig
-from sgad_jax.track import solve, track, transform_cloud
-from sgad_jax.types import Frame, GeometrySet, InsertInfo, Intrinsics, PixelGaussians, TrackInfo, empty_geometry
+from sgad_jax.track import relocalise, solve, track, transform_cloud
+from sgad_jax.types import (
+    FAIL_DEGENERATE, FAIL_INLIERS, FAIL_JUMP, FAIL_NONFINITE,
+    Frame, GeometrySet, InsertInfo, Intrinsics, PixelGaussians, TrackInfo, empty_geometry,
+)
 
 
 @jax.tree_util.register_dataclass
@@ -27,6 +30,7 @@ class SLAMState:
     geom: GeometrySet
     T_prev: lie.SE3  # pose of the last tracked frame
     velocity: Float[Array, "6"]  # body-frame twist per unit time of the last motion with dt > 0
+    inlier_share: Float[Array, ""]  # of the last accepted frame tracked against T (0 before one)
 
 
 def init_state(cfg: TrackConfig, T_init: lie.SE3 | None = None) -> SLAMState:
@@ -34,12 +38,43 @@ def init_state(cfg: TrackConfig, T_init: lie.SE3 | None = None) -> SLAMState:
     T_init = lie.identity() if T_init is None else T_init
     origin = T_init.translation()
     geom = empty_geometry(cfg.capacity, cfg.voxel_size, origin)
-    return SLAMState(geom=geom, T_prev=T_init, velocity=jnp.zeros(6))
+    return SLAMState(geom=geom, T_prev=T_init, velocity=jnp.zeros(6), inlier_share=jnp.zeros(()))
 
 
 def predict(cfg: TrackConfig, state: SLAMState, dt: Float[Array, ""]) -> lie.SE3:
     """The pose guess of the next frame: constant velocity ``T_prev exp(v dt)`` (or ``T_prev``)."""
     return state.T_prev @ lie.exp(state.velocity * dt) if cfg.constant_velocity else state.T_prev
+
+
+def _finite(T: lie.SE3) -> Bool[Array, ""]:
+    return jnp.all(jnp.isfinite(T.wxyz_xyz))
+
+
+def _select(ok: Bool[Array, ""], T: lie.SE3, other: lie.SE3) -> lie.SE3:
+    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), T, other)
+
+
+def _jump(T: lie.SE3, ref: lie.SE3) -> Float[Array, "2"]:
+    """Translation (metres) and rotation (radians) from ``ref`` to ``T``."""
+    rel = ref.inverse() @ T
+    return jnp.stack([jnp.linalg.norm(rel.translation()), jnp.linalg.norm(rel.rotation().log())])
+
+
+def _share(info: TrackInfo) -> Float[Array, ""]:
+    return info.inliers / jnp.maximum(info.points, 1)
+
+
+def judge(cfg: TrackConfig, info: TrackInfo, T: lie.SE3, jump: Float[Array, "2"], bound: tuple[float, ...]) -> Int[Array, ""]:
+    """Failure bits (``sgad_jax.types.FAIL_*``, 0: healthy) of a solved pose ``T`` that moved
+    ``jump`` (metres, radians) from where its solve started; ``bound`` in metres and degrees; the
+    inlier share must reach ``info.inlier_floor``."""
+    bits = [
+        (~_finite(T), FAIL_NONFINITE),
+        (~(_share(info) >= info.inlier_floor), FAIL_INLIERS),
+        (~((jump[0] <= bound[0]) & (jump[1] <= jnp.radians(bound[1]))), FAIL_JUMP),
+        (~(info.conditioning >= cfg.min_conditioning), FAIL_DEGENERATE),
+    ]
+    return sum(jnp.where(b, v, 0) for b, v in bits).astype(jnp.int32)
 
 
 def track_step(
@@ -51,8 +86,10 @@ def track_step(
     guess: lie.SE3 | None = None,
     *,
     differentiable: bool = True,
+    key: jax.Array | None = None,
 ) -> tuple[SLAMState, lie.SE3, TrackInfo, InsertInfo]:
-    """Track one frame against T, then add its non-overlapping geometry Gaussians to T.
+    """Track one frame against T, judge the pose, then add the frame's non-overlapping geometry
+    Gaussians to T.
 
     The first frame meets an empty T and keeps its initial pose. The guess (unless given, e.g. by
     :func:`sgad_jax.map.refine_pose`) is the constant-velocity
@@ -61,17 +98,61 @@ def track_step(
     per frame, because TUM's depth and colour streams are not synchronised and consecutive frames
     can be 0, 1 or 2 depth images apart.
 
+    With ``cfg.judge`` the solved pose is judged (:func:`judge`: finite, inlier share against
+    ``cfg.min_inlier_share`` times the last accepted frame's, jump from the guess, conditioning).
+    A failed pose is relocalised (:func:`sgad_jax.track.relocalise`, then GICP from its result,
+    judged again, ``cfg.relocalise``); only on that branch of a ``lax.cond``, so healthy frames
+    pay nothing for it. If that fails too, the frame keeps the guess (the previous pose if the
+    guess is not finite), adds nothing to T and leaves the velocity as it was. A relocalised
+    frame keeps the velocity too (its jump is no motion to extrapolate). A non-finite pose is a
+    failure even with ``cfg.judge`` off. The failure bits and ``recovered`` are in the returned
+    info. ``key`` draws the relocalisation's
+    samples (default: a key folded with T's size, so a run is reproducible).
+
     With ``differentiable=False`` the pose comes from the solver alone, without the implicit-gradient
     wrapper of :func:`sgad_jax.track.track` (the host loop does not differentiate; it saves ~2 s of
     compilation).
     """
+    solver = track if differentiable else solve
     cloud = gicp.frame_points(cfg, depth, intr)
     guess = predict(cfg, state, dt) if guess is None else guess
-    T, info = (track if differentiable else solve)(cfg, state.geom, cloud, guess)
-    geom, ins = geometry.insert(state.geom, transform_cloud(T, cloud))
-    moved = dt > 0
+    guess = _select(_finite(guess), guess, state.T_prev)
+    # The share of matched points depends on how dense they are against the voxels (low-resolution
+    # images match few), so a frame is judged against the share of the last accepted one.
+    floor = cfg.min_inlier_share * state.inlier_share
+    T, info = solver(cfg, state.geom, cloud, guess)
+    info = dataclasses.replace(info, inlier_floor=floor)
+    jump = _jump(T, guess)
+    judged = cfg.judge & (state.geom.count > 0)  # the first frame has nothing to be judged against
+    # A non-finite pose fails even unjudged: NaN must never reach a pose or the state.
+    failure = jnp.where(judged, judge(cfg, info, T, jump, cfg.max_jump), jnp.where(_finite(T), 0, FAIL_NONFINITE))
+    info = dataclasses.replace(info, failure=failure, jump=jnp.where(jnp.isfinite(jump), jump, jnp.inf))
+
+    def recover(_):
+        k = jax.random.fold_in(jax.random.key(0), state.geom.count) if key is None else key
+        T0 = relocalise(cfg, state.geom, cloud, guess, key=k)
+        T1, info1 = solver(cfg, state.geom, cloud, T0)
+        info1 = dataclasses.replace(info1, inlier_floor=floor)
+        bad = judge(cfg, info1, T1, _jump(T1, T0), cfg.max_jump) | judge(cfg, info1, T1, _jump(T1, guess), cfg.relocalise_max_move)
+        return _select(bad == 0, T1, guess), bad == 0, info.iterations + info1.iterations, _share(info1)
+
+    def keep(_):
+        return _select(failure == 0, T, guess), jnp.zeros((), bool), info.iterations, _share(info)
+
+    if cfg.relocalise:
+        T, recovered, iterations, share = jax.lax.cond(failure != 0, recover, keep, None)
+    else:
+        T, recovered, iterations, share = keep(None)
+    info = dataclasses.replace(info, recovered=recovered, iterations=iterations)
+    healthy = failure == 0
+    accepted = healthy | recovered
+    # A failed frame's points never reach T: its pose is only a guess.
+    geom, ins = geometry.insert(state.geom, dataclasses.replace(transform_cloud(T, cloud), valid=cloud.valid & accepted))
+    moved = (dt > 0) & healthy
     velocity = jnp.where(moved, (state.T_prev.inverse() @ T).log() / jnp.where(moved, dt, 1.0), state.velocity)
-    new = SLAMState(geom=geom, T_prev=T, velocity=velocity)
+    velocity = jnp.where(jnp.all(jnp.isfinite(velocity)), velocity, state.velocity)
+    share = jnp.where(accepted & (state.geom.count > 0), share, state.inlier_share)
+    new = SLAMState(geom=geom, T_prev=T, velocity=velocity, inlier_share=share)
     return new, T, info, ins
 
 

@@ -175,14 +175,14 @@ def _gauss_newton(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: li
         q = lie.transform_points(R, t, cloud.points)
         e, cov_b, found = match(cfg, cand, q)
         M = gicp.information(R, cloud.covs, cov_b)
-        H, g, c = gicp.linearise(q, e, M, found.astype(jnp.float32) * weight)
+        H_raw, g, c = gicp.linearise(q, e, M, found.astype(jnp.float32) * weight)
         n_in = jnp.sum(found).astype(jnp.int32)
         enough = n_in >= 6
-        H = H + (1e-6 * jnp.trace(H) / 6.0 + jnp.where(enough, 0.0, 1.0)) * jnp.eye(6)
+        H = H_raw + (1e-6 * jnp.trace(H_raw) / 6.0 + jnp.where(enough, 0.0, 1.0)) * jnp.eye(6)
         xi = jnp.where(enough, -jnp.linalg.solve(H, g), 0.0)
         done = jnp.all(jnp.abs(xi) < cfg.tolerance) | ~enough
         stretch = jnp.where(done, 1.0, _stretch(cfg, xi, xi_prev))
-        return lie.retract_left(T, stretch * xi), done, c, n_in, xi
+        return lie.retract_left(T, stretch * xi), done, c, n_in, xi, H_raw
 
     def outer(state):
         # Look the candidates up at the current pose, then iterate on them until convergence or
@@ -192,31 +192,42 @@ def _gauss_newton(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: li
         cand = gather_candidates(geom, lie.transform_points(R, t, cloud.points), cloud.valid)
 
         def inner(s):
-            T, it, _, _, _, xi, k = s
-            T, done, c, n_in, xi = step(cand, T, xi)
-            return T, it + 1, done, c, n_in, xi, k + 1
+            T, it, _, _, _, xi, _, k = s
+            T, done, c, n_in, xi, H = step(cand, T, xi)
+            return T, it + 1, done, c, n_in, xi, H, k + 1
 
         def near(T):
             return _moved(T, T_ref, reach) < fresh_voxels * geom.voxel_size
 
         def fresh(s):
-            T, it, done, _, _, _, k = s
+            T, it, done, _, _, _, _, k = s
             return (k == 0) | ((it < cfg.max_iterations) & ~done & near(T))
 
         # One step always (so that a non-finite pose cannot stall the outer loop), then more while
         # the candidates are still fresh (a do-while, so that the step is traced once).
         # Convergence counts only if the pose ended close to where the candidates were looked up:
         # candidates from afar can miss the nearest Gaussians.
-        T, it, done, c, n_in, xi, _ = jax.lax.while_loop(fresh, inner, (*state, jnp.zeros((), jnp.int32)))
-        return T, it, done & near(T), c, n_in, xi
+        T, it, done, c, n_in, xi, H, _ = jax.lax.while_loop(fresh, inner, (*state, jnp.zeros((), jnp.int32)))
+        return T, it, done & near(T), c, n_in, xi, H
 
     def more(state):
         return (state[1] < cfg.max_iterations) & ~state[2]
 
-    init = (T0, jnp.zeros((), jnp.int32), jnp.zeros((), bool), jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.zeros(6))
-    T, it, done, c, n_in, _ = jax.lax.while_loop(more, outer, init)
-    info = TrackInfo(iterations=it, converged=done, cost=c, inliers=n_in, points=jnp.sum(cloud.valid).astype(jnp.int32))
+    init = (T0, jnp.zeros((), jnp.int32), jnp.zeros((), bool), jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.zeros(6), jnp.zeros((6, 6)))
+    T, it, done, c, n_in, _, H = jax.lax.while_loop(more, outer, init)
+    info = TrackInfo(
+        iterations=it, converged=done, cost=c, inliers=n_in, points=jnp.sum(cloud.valid).astype(jnp.int32),
+        conditioning=conditioning(H), failure=jnp.zeros((), jnp.int32), recovered=jnp.zeros((), bool), jump=jnp.zeros(2), inlier_floor=jnp.zeros(()),
+    )
     return T, info
+
+
+def conditioning(H: Float[Array, "6 6"]) -> Float[Array, ""]:
+    """Smallest over largest eigenvalue of a Gauss-Newton Hessian (0 when it is zero or not finite):
+    near 0, some direction of motion is not constrained by the matches (a corridor, a single plane)."""
+    ok = jnp.all(jnp.isfinite(H))
+    lam = jnp.linalg.eigvalsh(jnp.where(ok, H, 0.0))
+    return jnp.where(ok & (lam[-1] > 0), jnp.maximum(lam[0], 0.0) / jnp.where(lam[-1] > 0, lam[-1], 1.0), 0.0)
 
 
 def track(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T_guess: lie.SE3) -> tuple[lie.SE3, TrackInfo]:
@@ -250,3 +261,54 @@ def track(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T_guess: lie.S
 
     xi = jax.lax.custom_root(grad_at, jnp.zeros(6), lambda f, x0: xi_sol, tangent_solve)
     return lie.exp(xi) @ T_guess, info
+
+
+def relocalise(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.SE3, *, key: jax.Array) -> lie.SE3:
+    """A wide-basin pose estimate from ``T0`` for a frame that GICP could not track.
+
+    GICP's candidates are the 2x2x2 voxels around each point, so it cannot pull in an error of
+    more than a voxel or two. Here ``cfg.relocalise_points`` of the frame's points are matched by
+    brute force to their nearest among ``cfg.relocalise_map_points`` points of T drawn at random in
+    front of the guessed camera, and the pose follows from point-to-plane ICP (plus
+    ``cfg.nn_weight`` times point-to-point, for the directions a plane leaves free) with a
+    correspondence gate that shrinks geometrically from ``relocalise_gate[0]`` to ``[1]``.
+    Not differentiable; the result seeds a normal :func:`solve`.
+    """
+    k_frame, k_map = jax.random.split(key)
+    m, n = cloud.points.shape[-1], geom.capacity
+    p_frame, p_map = min(cfg.relocalise_points, m), min(cfg.relocalise_map_points, n)
+    # Valid points first, in random order (top_k of a score where validity outweighs the noise).
+    _, ia = jax.lax.top_k(jax.random.uniform(k_frame, (m,)) + cloud.valid, p_frame)
+    a, a_ok = cloud.points[:, ia], cloud.valid[ia]
+    reach = jnp.max(jnp.where(a_ok, jnp.sqrt(jnp.sum(a * a, axis=0)), 0.0))
+    # Points of T within a wide cone in front of the guessed camera (60 degrees off axis, up to the
+    # frame's reach plus the largest move allowed), then the rest of T.
+    Rc, tc = lie.rotation_components(T0.inverse())
+    p_c = lie.transform_points(Rc, tc, geom.points)
+    dist = jnp.sqrt(jnp.sum(p_c * p_c, axis=0))
+    ahead = (p_c[2] > 0.5 * dist) & (dist < reach + cfg.relocalise_max_move[0])
+    score = jax.random.uniform(k_map, (n,)) + ahead + jnp.where(geom.active, 0.0, -4.0)
+    _, ib = jax.lax.top_k(score, p_map)
+    b, nb, b_ok = geom.points[:, ib], geom.normals[:, ib], geom.active[ib]
+    b2 = jnp.where(b_ok, jnp.sum(b * b, axis=0), jnp.inf)
+    w = cfg.nn_weight
+    # Information of (n . e)^2 + w |e|^2 for each map point: n n^T + w I, as six entries.
+    M_b = jnp.stack([nb[0] * nb[0] + w, nb[1] * nb[1] + w, nb[2] * nb[2] + w, nb[0] * nb[1], nb[0] * nb[2], nb[1] * nb[2]])
+    g0, g1 = cfg.relocalise_gate
+    steps = cfg.relocalise_iterations
+
+    def step(i, T):
+        gate = g0 * (g1 / g0) ** (i / max(steps - 1, 1))
+        R, t = lie.rotation_components(T)
+        q = lie.transform_points(R, t, a)
+        d2 = jnp.sum(q * q, axis=0)[:, None] + b2[None, :] - 2.0 * (q.T @ b)
+        j = jnp.argmin(d2, axis=1)
+        ok = a_ok & (jnp.min(d2, axis=1) < gate * gate)
+        e = jnp.where(ok, q - b[:, j], 0.0)
+        H, g, _ = gicp.linearise(q, e, M_b[:, j], ok.astype(jnp.float32))
+        enough = jnp.sum(ok) >= 6
+        H = H + (1e-6 * jnp.trace(H) / 6.0 + jnp.where(enough, 0.0, 1.0)) * jnp.eye(6)
+        xi = jnp.where(enough, -jnp.linalg.solve(H, g), 0.0)
+        return lie.retract_left(T, jnp.where(jnp.all(jnp.isfinite(xi)), xi, 0.0))
+
+    return jax.lax.fori_loop(0, steps, step, T0)

@@ -186,15 +186,33 @@ class PointCloud:
     valid: Bool[Array, " m"]
 
 
+#: Bits of ``TrackInfo.failure``: why a tracked pose was judged unhealthy (see ``sgad_jax.slam``).
+FAIL_NONFINITE, FAIL_INLIERS, FAIL_JUMP, FAIL_DEGENERATE = 1, 2, 4, 8
+
+
 @_pytree
 class TrackInfo:
-    """Diagnostics of one tracking step."""
+    """Diagnostics of one tracking step.
+
+    ``conditioning`` is the smallest over the largest eigenvalue of the last Gauss-Newton Hessian.
+    ``failure`` is a bitmask of ``FAIL_*`` (0: healthy) judged by :func:`sgad_jax.slam.track_step` on
+    its first solve, whose figures (inliers, conditioning, ``jump``: translation in metres and
+    rotation in radians from the guess) this info keeps, with ``inlier_floor``, the inlier share
+    it had to reach; ``recovered`` says whether the
+    relocalisation that follows a failure gave a healthy pose. :func:`sgad_jax.track.solve` alone
+    leaves ``failure`` 0 and ``jump`` 0.
+    """
 
     iterations: Int[Array, "*b"]
     converged: Bool[Array, "*b"]
     cost: Float[Array, "*b"]
     inliers: Int[Array, "*b"]
     points: Int[Array, "*b"]
+    conditioning: Float[Array, "*b"]
+    failure: Int[Array, "*b"]
+    recovered: Bool[Array, "*b"]
+    jump: Float[Array, "*b 2"]
+    inlier_floor: Float[Array, "*b"]
 
 
 @_pytree
@@ -217,5 +235,9 @@ __all__ = [
     "KEY_EMPTY",
     "PointCloud",
     "TrackInfo",
+    "FAIL_NONFINITE",
+    "FAIL_INLIERS",
+    "FAIL_JUMP",
+    "FAIL_DEGENERATE",
     "InsertInfo",
 ]

@@ -110,6 +110,20 @@ def camera_trajectory(frames: int) -> np.ndarray:
     return np.stack([look_at(e, g) for e, g in zip(eye, target)]) if frames else np.zeros((0, 4, 4))
 
 
+def jump_pose(metres: float, degrees: float) -> np.ndarray:
+    """The camera-frame displacement (4, 4) of ``data.synthetic.jump``: ``metres`` along an oblique
+    axis (right, down and back, so the view changes in every direction) and a turn of ``degrees``
+    about a mostly vertical axis."""
+    t = np.array([1.0, 0.5, -0.5]) / np.sqrt(1.5)
+    w = np.array([0.2, 1.0, 0.1]) / np.linalg.norm([0.2, 1.0, 0.1]) * np.radians(degrees)
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    th = np.linalg.norm(w)
+    R = np.eye(3) + (np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K if th > 0 else 0)
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, metres * t
+    return M
+
+
 def _first_axis(tx: np.ndarray, ty: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Index (0, 1, 2) of the per-axis distance (x, y or else z) that equals ``t``."""
     return np.where(tx == t, 0, np.where(ty == t, 1, 2))
@@ -262,6 +276,10 @@ class SyntheticDataset(Dataset):
         self.intrinsics_full = self.camera
         self.timestamps_raw = np.arange(s.frames, dtype=np.float64) / FPS
         self.gt_poses_raw = camera_trajectory(s.frames)
+        if s.jump_frame > 0:
+            if len(s.jump) != 2:
+                raise DatasetError(f"{self.root}: data.synthetic.jump is (metres, degrees), got {s.jump}")
+            self.gt_poses_raw[s.jump_frame :] = self.gt_poses_raw[s.jump_frame :] @ jump_pose(*s.jump)
         self._finish_init()
 
     def _num_raw(self) -> int:
