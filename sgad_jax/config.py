@@ -85,8 +85,9 @@ class TrackConfig:
     # Tracking health (docs/method.md, "Tracking health"): a solved pose fails when it is not finite,
     # when its share of matched points is under min_inlier_share times the last accepted frame's
     # (the share depends on point density against the voxels), when it moved more than
-    # max_jump (metres, degrees) from the guess, or when its Hessian's smallest / largest eigenvalue
-    # is under min_conditioning. A failed frame is relocalised (relocalise_*); if that fails too it
+    # max_jump (metres, degrees) from the guess; a Hessian whose smallest / largest eigenvalue is
+    # under min_conditioning is named as a reason beside those (alone it is a corridor, not a
+    # failure). A failed frame is relocalised (relocalise_*); if that fails too it
     # keeps the guess and adds nothing to T.
     judge: bool = True
     min_inlier_share: float = 0.3

@@ -67,14 +67,19 @@ def _share(info: TrackInfo) -> Float[Array, ""]:
 def judge(cfg: TrackConfig, info: TrackInfo, T: lie.SE3, jump: Float[Array, "2"], bound: tuple[float, ...]) -> Int[Array, ""]:
     """Failure bits (``sgad_jax.types.FAIL_*``, 0: healthy) of a solved pose ``T`` that moved
     ``jump`` (metres, radians) from where its solve started; ``bound`` in metres and degrees; the
-    inlier share must reach ``info.inlier_floor``."""
+    inlier share must reach ``info.inlier_floor``.
+
+    A poorly conditioned Hessian is no failure by itself: along a corridor GICP keeps the guess's
+    component in the direction the walls leave free, which is the best there is (a 30 m corridor
+    walk goes down to 2.5e-6 while tracked to millimetres). It is added as a reason when another
+    test fails."""
     bits = [
         (~_finite(T), FAIL_NONFINITE),
         (~(_share(info) >= info.inlier_floor), FAIL_INLIERS),
         (~((jump[0] <= bound[0]) & (jump[1] <= jnp.radians(bound[1]))), FAIL_JUMP),
-        (~(info.conditioning >= cfg.min_conditioning), FAIL_DEGENERATE),
     ]
-    return sum(jnp.where(b, v, 0) for b, v in bits).astype(jnp.int32)
+    failed = sum(jnp.where(b, v, 0) for b, v in bits).astype(jnp.int32)
+    return failed + jnp.where((failed > 0) & ~(info.conditioning >= cfg.min_conditioning), FAIL_DEGENERATE, 0).astype(jnp.int32)
 
 
 def track_step(
