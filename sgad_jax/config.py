@@ -38,7 +38,19 @@ class DataConfig:
     depth_trunc: float = 0.0  # metres; depth beyond it is treated as missing; 0: keep all
     tum_max_dt: float = 0.08  # TUM rgb/depth/pose association tolerance (s), as every published number
     inpaint: bool = True  # fill missing depth by Navier-Stokes inpainting for the appearance branch
+    # The paper's depth-noise ablation (as ../shared/tools/corrupt_depth.py): this share of each
+    # frame's valid depth pixels gets N(0, noise_sigma) metres added, drawn from (noise_seed, the
+    # depth image), so a frame's noise does not depend on which frames are read or in what order.
+    noise_share: float = 0.0
+    noise_sigma: float = 0.02
+    noise_seed: int = 0
     synthetic: SyntheticConfig = SyntheticConfig()
+
+    def __post_init__(self):
+        if not 0.0 <= self.noise_share <= 1.0 or self.noise_sigma < 0:
+            raise ConfigError(
+                f"data.noise_share must lie in [0, 1] and data.noise_sigma be >= 0; got {self.noise_share}, {self.noise_sigma}"
+            )
 
 
 @dataclasses.dataclass(frozen=True)
