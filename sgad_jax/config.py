@@ -85,11 +85,11 @@ class TrackConfig:
     # (Aitken extrapolation, sgad_jax.track._stretch); 1: plain Gauss-Newton. Fewer steps, same
     # accuracy (docs/method.md).
     extrapolation: float = 4.0
-    # A sampled depth pixel is used (tracked and inserted into T) only if at least half of the
-    # measured depths of its full-resolution 3x3 neighbourhood agree with it within
-    # consensus_gate * depth: isolated outliers (noise spikes, flying pixels) are dropped before
-    # they bend their neighbours' covariances or enter T. 0: off, as the paper (docs/method.md).
-    consensus_gate: float = 0.01
+    # A sampled depth pixel is used (tracked and inserted into T) only if it lies within
+    # median_gate * depth of the median of its full-resolution 3x3 neighbourhood: isolated
+    # outliers (noise spikes, flying pixels) are dropped before they bend their neighbours'
+    # covariances or enter T. 0: off, as the paper (docs/method.md).
+    median_gate: float = 0.01
 
     def __post_init__(self):
         if any(c < 1 for c in self.coarse):

@@ -243,7 +243,7 @@ def test_tracking_scans_over_a_sequence_like_the_host_loop(tmp_path):
     np.testing.assert_allclose(np.asarray(poses), result.poses, atol=1e-5)
 
 
-# --- depth outliers (track.consensus_gate) -------------------------------------------------------
+# --- depth outliers (track.median_gate) -------------------------------------------------------
 
 
 def _corner_depth(T_wc: np.ndarray, h: int = 240, w: int = 320, f: float = 300.0) -> np.ndarray:
@@ -260,8 +260,25 @@ def _corner_depth(T_wc: np.ndarray, h: int = 240, w: int = 320, f: float = 300.0
     return z.astype(np.float32)
 
 
-def test_depth_outliers_dropped_by_consensus_keep_normals_on_a_plane():
-    """40% of a tilted plane's pixels moved by N(0, 2 cm): with the 3x3 consensus the surviving
+def test_median_gate_matches_numpy_and_passes_steep_planes():
+    """The gate's median of the valid 3x3 depths equals numpy's nanmedian; a plane seen almost
+    edge-on (neighbouring depths 10% apart) passes whole, since its 3x3 median is the centre."""
+    rng = np.random.default_rng(0)
+    d = rng.uniform(1.0, 2.0, (30, 40)).astype(np.float32)
+    d[rng.random(d.shape) < 0.2] = 0.0
+    s, off = 5, 2
+    got = np.asarray(gicp._median_consistent(jnp.asarray(d), jnp.asarray(d[off::s, off::s]), s, off, 0.1))
+    pad = np.pad(d, 1).astype(np.float64)
+    near = np.stack([pad[off + i :: s, off + j :: s][:6, :8] for i in range(3) for j in range(3)])
+    centre = d[off::s, off::s]
+    want = np.abs(centre - np.nanmedian(np.where(near > 0, near, np.nan), axis=0)) <= 0.1 * centre
+    np.testing.assert_array_equal(got, want)
+    steep = (1.0 + 0.1 * np.arange(40))[None, :].repeat(30, 0).astype(np.float32)  # 10% per pixel along u
+    assert np.asarray(gicp._median_consistent(jnp.asarray(steep), jnp.asarray(steep[off::s, off::s]), s, off, 0.01))[:, :-1].all()
+
+
+def test_median_gate_drops_depth_outliers_and_keeps_normals_on_a_plane():
+    """40% of a tilted plane's pixels moved by N(0, 2 cm): with the 3x3 median gate the surviving
     points stay near the plane and their normals near its normal; without it they do not."""
     from sgad_jax.io.base import add_depth_noise
     from sgad_jax.types import make_intrinsics
@@ -274,7 +291,7 @@ def test_depth_outliers_dropped_by_consensus_keep_normals_on_a_plane():
     depth = add_depth_noise((n[2] / np.tensordot(n, rays, 1)).astype(np.float32), 0.4, 0.02, seed=0, key=0)
     stats = {}
     for gate in (0.0, 0.01):
-        cloud = gicp.frame_points(TrackConfig(stride=5, k=23, consensus_gate=gate), jnp.asarray(depth), intr)
+        cloud = gicp.frame_points(TrackConfig(stride=5, k=23, median_gate=gate), jnp.asarray(depth), intr)
         ok = np.asarray(cloud.valid)
         angle = np.degrees(np.arccos(np.clip(np.abs(n @ np.asarray(cloud.normals)[:, ok]), 0.0, 1.0)))
         off_plane = n @ np.asarray(cloud.points)[:, ok] - n[2]
@@ -284,7 +301,7 @@ def test_depth_outliers_dropped_by_consensus_keep_normals_on_a_plane():
 
 
 @pytest.mark.slow
-def test_consensus_tracks_noisy_depth_closer_to_the_true_pose():
+def test_median_gate_tracks_noisy_depth_closer_to_the_true_pose():
     """A frame of a room corner tracked against T built from another, both with 40% of their depth
     pixels moved by N(0, 2 cm): dropping the outliers (the default) recovers the known motion to
     about a millimetre, several times closer than with them kept; on clean depth it changes nothing."""
@@ -300,7 +317,7 @@ def test_consensus_tracks_noisy_depth_closer_to_the_true_pose():
     D0, D1 = _corner_depth(np.eye(4)), _corner_depth(M1)
     err = {}
     for gate in (0.0, 0.01):
-        cfg = TrackConfig(consensus_gate=gate, coarse=(), capacity=1 << 15)
+        cfg = TrackConfig(median_gate=gate, coarse=(), capacity=1 << 15)
         step = jax.jit(lambda st, d, cfg=cfg: slam.track_step(cfg, st, d, intr, jnp.float32(0.0), differentiable=False)[:2])
         for seed in range(3):
             st, _ = step(slam.init_state(cfg), jnp.asarray(add_depth_noise(D0, 0.4, 0.02, seed, 0)))
