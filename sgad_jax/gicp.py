@@ -217,7 +217,9 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
     nearest neighbours (itself included) in 3-D among the ``cfg.window`` x ``cfg.window`` patch of the
     strided grid around it, skipping neighbours with missing depth or a depth jump larger than
     ``cfg.depth_gate * depth``. The neighbours are exact (ties broken by window position,
-    :func:`_nearest`): a k-nearest-neighbour search restricted to the patch.
+    :func:`_nearest`): a k-nearest-neighbour search restricted to the patch. With
+    ``cfg.median_gate > 0``, pixels far from their 3x3 median are missing depth from the start
+    (:func:`_median_consistent`).
 
     Args:
         cfg: tracking config (stride R, k K_c, window, depth_gate, eps, min/max depth).
