@@ -43,7 +43,19 @@ class DataConfig:
     tum_max_dt: float = 0.08  # TUM rgb/depth/pose association tolerance (s), as every published number
     inpaint: bool = True  # fill missing depth by Navier-Stokes inpainting for the appearance branch
     nonfinite_depth: str = "error"  # NaN/Inf depth pixels: a bad frame (error), or missing depth (missing)
+    # The paper's depth-noise ablation (as ../shared/tools/corrupt_depth.py): this share of each
+    # frame's valid depth pixels gets N(0, noise_sigma) metres added, drawn from (noise_seed, the
+    # depth image), so a frame's noise does not depend on which frames are read or in what order.
+    noise_share: float = 0.0
+    noise_sigma: float = 0.02
+    noise_seed: int = 0
     synthetic: SyntheticConfig = SyntheticConfig()
+
+    def __post_init__(self):
+        if not 0.0 <= self.noise_share <= 1.0 or self.noise_sigma < 0:
+            raise ConfigError(
+                f"data.noise_share must lie in [0, 1] and data.noise_sigma be >= 0; got {self.noise_share}, {self.noise_sigma}"
+            )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,6 +111,11 @@ class TrackConfig:
     relocalise_iterations: int = 40
     relocalise_gate: tuple[float, ...] = (0.5, 0.05)  # correspondence gate (metres), first and last iteration
     relocalise_max_move: tuple[float, ...] = (1.0, 45.0)  # farthest a relocalised pose may be from the guess (metres, degrees)
+    # A sampled depth pixel is used (tracked and inserted into T) only if it lies within
+    # median_gate * depth of the median of its full-resolution 3x3 neighbourhood: isolated
+    # outliers (noise spikes, flying pixels) are dropped before they bend their neighbours'
+    # covariances or enter T. 0: off, as the paper (docs/method.md).
+    median_gate: float = 0.01
 
     def __post_init__(self):
         if any(c < 1 for c in self.coarse):

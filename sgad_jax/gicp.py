@@ -183,6 +183,33 @@ def _nearest(D: Float[Array, "n *m"], k: int) -> Bool[Array, "n *m"]:
     return (rank < k) & jnp.isfinite(D)  # ranks < n
 
 
+def _median_consistent(depth: Float[Array, "h w"], d: Float[Array, "hs ws"], s: int, off: int, gate: float) -> Bool[Array, "hs ws"]:
+    """Whether each strided pixel's depth ``d`` lies within ``gate * d`` of the median of the
+    measured depths of its full-resolution 3x3 neighbourhood (itself included).
+
+    A depth pixel far from its neighbourhood's median is an outlier (a noise spike, a flying pixel
+    at an edge): kept, it is a point off the surface in the frame and, once inserted, in the
+    geometry set, and through the 5x5 window it tilts its neighbours' normals. The median of a
+    plane's 3x3 depths is its centre value whatever the slope (the values pair up around it), so
+    clean surfaces pass, and it ignores outliers while they are fewer than half the neighbourhood.
+    """
+    pad = jnp.pad(depth, 1)
+    hs, ws = d.shape
+    vals = []
+    for di in (0, 1, 2):
+        for dj in (0, 1, 2):
+            q = jax.lax.slice(pad, (off + di, off + dj), (off + di + s * (hs - 1) + 1, off + dj + s * (ws - 1) + 1), (s, s))
+            vals.append(jnp.where(jnp.isfinite(q) & (q > 0), q, jnp.inf))  # missing depth sorts last
+    # Odd-even transposition sort of the nine values, element-wise (a sort along an axis is slow on XLA:CPU).
+    for sweep in range(9):
+        for a in range(sweep % 2, 8, 2):
+            vals[a], vals[a + 1] = jnp.minimum(vals[a], vals[a + 1]), jnp.maximum(vals[a], vals[a + 1])
+    n = sum((v < jnp.inf).astype(jnp.int32) for v in vals)
+    lo, hi = (n - 1) // 2, n // 2  # the two middle measured values (one when n is odd)
+    med = 0.5 * sum(jnp.where(lo == k, v, 0.0) + jnp.where(hi == k, v, 0.0) for k, v in enumerate(vals))
+    return jnp.abs(d - med) <= gate * d
+
+
 def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics) -> PointCloud:
     """Geometry Gaussians of one depth frame, in camera coordinates.
 
@@ -190,7 +217,9 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
     nearest neighbours (itself included) in 3-D among the ``cfg.window`` x ``cfg.window`` patch of the
     strided grid around it, skipping neighbours with missing depth or a depth jump larger than
     ``cfg.depth_gate * depth``. The neighbours are exact (ties broken by window position,
-    :func:`_nearest`): a k-nearest-neighbour search restricted to the patch.
+    :func:`_nearest`): a k-nearest-neighbour search restricted to the patch. With
+    ``cfg.median_gate > 0``, pixels far from their 3x3 median are missing depth from the start
+    (:func:`_median_consistent`).
 
     Args:
         cfg: tracking config (stride R, k K_c, window, depth_gate, eps, min/max depth).
@@ -207,6 +236,8 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
     valid = jnp.isfinite(d) & (d > cfg.min_depth)
     if cfg.max_depth > 0:
         valid = valid & (d < cfg.max_depth)
+    if cfg.median_gate > 0:
+        valid = valid & _median_consistent(depth, d, s, off, cfg.median_gate)
     d = jnp.where(valid, d, 0.0)
     p = (d * (u - intr.cx) / intr.fx, d * (v - intr.cy) / intr.fy, d)
 

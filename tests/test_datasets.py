@@ -13,7 +13,8 @@ import pytest
 
 from sgad_jax.config import DataConfig
 from sgad_jax.io import datasets as ds
-from sgad_jax.io.base import DatasetError
+from sgad_jax.config import ConfigError, SLAMConfig, apply_overrides
+from sgad_jax.io.base import DatasetError, add_depth_noise
 from sgad_jax.io.datasets import (
     GenericDataset,
     ReplicaDataset,
@@ -329,6 +330,57 @@ def test_selection_start_stride_max_frames(tmp_path):
     assert [s.depth[0, 0] for s in samples] == pytest.approx([1.1, 1.4, 1.7])
     with pytest.raises(DatasetError, match="no frames selected"):
         open_dataset(cfg(root, start=SCANNET_N))
+
+
+# --- depth noise (the paper's corruption, data.noise_*) ----------------------------------------------
+
+
+def test_depth_noise_share_statistics_and_determinism():
+    rng = np.random.default_rng(7)
+    depth = rng.uniform(0.5, 4.0, (300, 400)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.25] = 0.0
+    out = add_depth_noise(depth, 0.4, 0.02, seed=3, key=11)
+    valid = depth > 0
+    changed = out != depth
+    assert not (changed & ~valid).any() and (out[~valid] == 0).all()  # missing depth stays missing
+    assert changed[valid].mean() == pytest.approx(0.4, abs=0.01)  # a share of the *valid* pixels
+    diff = (out - depth)[changed].astype(np.float64)
+    assert abs(diff.mean()) < 1e-3 and diff.std() == pytest.approx(0.02, rel=0.02)
+    np.testing.assert_array_equal(out, add_depth_noise(depth, 0.4, 0.02, seed=3, key=11))
+    assert not np.array_equal(out, add_depth_noise(depth, 0.4, 0.02, seed=4, key=11))
+    assert not np.array_equal(out, add_depth_noise(depth, 0.4, 0.02, seed=3, key=12))
+    near = add_depth_noise(np.full((50, 50), 0.01, np.float32), 1.0, 0.5, seed=0, key=0)
+    assert near.min() == pytest.approx(1e-3)  # floored at 1 mm, as corrupt_depth.py: never made missing
+    np.testing.assert_array_equal(add_depth_noise(depth, 0.0, 0.02, seed=0, key=0), depth)
+
+
+def test_depth_noise_option_is_per_frame_whatever_the_selection(tmp_path):
+    root = make_scannet(tmp_path)
+    noisy = lambda **kw: open_dataset(cfg(root, noise_share=0.5, noise_sigma=0.05, noise_seed=2, **kw))  # noqa: E731
+    a = {s.source_index: s.depth for s in noisy()}
+    b = {s.source_index: s.depth for s in noisy(start=1, stride=3)}
+    clean = {s.source_index: s.depth for s in open_dataset(cfg(root))}
+    assert b.keys() <= a.keys()
+    for j in b:
+        np.testing.assert_array_equal(a[j], b[j])
+        assert 0 < (a[j] != clean[j]).mean() < 1
+    later = open_dataset(cfg(root, noise_share=0.5, noise_sigma=0.05, noise_seed=2))
+    np.testing.assert_array_equal(later[3].depth, a[3])  # read out of order
+
+
+def test_depth_noise_set_from_the_command_line():
+    c = apply_overrides(SLAMConfig(), ["data.noise_share=0.4", "data.noise_sigma=0.03", "data.noise_seed=5"])
+    assert (c.data.noise_share, c.data.noise_sigma, c.data.noise_seed) == (0.4, 0.03, 5)
+    with pytest.raises(ConfigError, match="noise_share"):
+        DataConfig(noise_share=1.5)
+
+
+def test_real_tum_depth_noise_keeps_shared_depth_images_shared():
+    """TUM pairs 7 depth images of fr1/xyz's first 37 frames with two colour images each: one depth
+    file gets one noise (as corrupt_depth.py, which rewrites the file), so they stay repeats."""
+    d = open_dataset(cfg(_real("tum_fr1_xyz"), noise_share=0.4))
+    depths = [d[i].depth for i in range(len(d))]
+    assert sum(np.array_equal(a, b) for a, b in zip(depths[1:], depths[:-1])) == 7
 
 
 # --- ScanNet++ -----------------------------------------------------------------------------------

@@ -115,6 +115,25 @@ def inpaint_depth(depth: np.ndarray, radius: int = 5) -> np.ndarray:
     return np.where(missing, np.maximum(filled, 0.0), depth).astype(np.float32)
 
 
+def add_depth_noise(depth: np.ndarray, share: float, sigma: float, seed: int, key: int) -> np.ndarray:
+    """The paper's depth corruption (``../shared/tools/corrupt_depth.py``): each valid pixel is
+    picked with probability ``share`` and gets ``N(0, sigma)`` metres added, floored at 1 mm.
+
+    Drawn from ``(seed, key)``, ``key`` naming the depth image, so that each image's noise is fixed
+    whatever the frame selection or read order. (corrupt_depth.py also rounds to the file's depth
+    unit, 0.2-1 mm, which is left out here.)
+
+    Args:
+        depth: (h, w) depth in metres, 0 where missing.
+    """
+    rng = np.random.default_rng([seed, key])
+    valid = depth > 0
+    pick = valid & (rng.random(depth.shape) < share)
+    out = depth.astype(np.float64)
+    out[pick] = np.maximum(out[pick] + rng.normal(0.0, sigma, int(pick.sum())), 1e-3)
+    return out.astype(np.float32)
+
+
 def downscale_rgbd(rgb: np.ndarray, depth: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
     """Colour by area averaging; depth by taking every ``factor``-th pixel (never mixes in missing depth)."""
     if factor == 1:
@@ -148,6 +167,10 @@ class Dataset:
     def _load_raw(self, j: int) -> tuple[np.ndarray, np.ndarray]:
         """(rgb uint8 (H, W, 3), depth float32 metres (H, W)) of the dataset's own frame ``j``."""
         raise NotImplementedError
+
+    def _noise_key(self, j: int) -> int:
+        """Names frame ``j``'s depth image for :func:`add_depth_noise` (frames sharing one get one noise)."""
+        return j
 
     # --- shared -----------------------------------------------------------------------------
     def _finish_init(self) -> None:
@@ -244,6 +267,8 @@ class Dataset:
                 "(set data.nonfinite_depth=missing if they mark missing depth)"
             )
         depth = np.where(finite & (depth > 0), depth, 0.0).astype(np.float32)
+        if self.cfg.noise_share > 0:
+            depth = add_depth_noise(depth, self.cfg.noise_share, self.cfg.noise_sigma, self.cfg.noise_seed, self._noise_key(j))
         if self.cfg.depth_trunc > 0:
             depth = np.where(depth <= self.cfg.depth_trunc, depth, 0.0).astype(np.float32)
         if not depth.any():
