@@ -14,6 +14,7 @@ import copy
 import dataclasses
 import functools
 import pathlib
+import zlib
 
 import cv2
 import numpy as np
@@ -119,8 +120,10 @@ def add_depth_noise(depth: np.ndarray, share: float, sigma: float, seed: int, ke
     """The paper's depth corruption (``../shared/tools/corrupt_depth.py``): each valid pixel is
     picked with probability ``share`` and gets ``N(0, sigma)`` metres added, floored at 1 mm.
 
-    Drawn from ``(seed, key)``, ``key`` naming the depth image, so that each image's noise is fixed
-    whatever the frame selection or read order. (corrupt_depth.py also rounds to the file's depth
+    Drawn from ``(seed, key)``, ``key`` naming the depth image (the loader uses a checksum of its
+    content), so that each image's noise is fixed whatever the frame selection or read order, and
+    a repeated capture (TUM pairs some depth images with two colour images; 7-Scenes repeats whole
+    captures under new names) stays the same measurement, with the same noise. (corrupt_depth.py also rounds to the file's depth
     unit, 0.2-1 mm, which is left out here.)
 
     Args:
@@ -167,10 +170,6 @@ class Dataset:
     def _load_raw(self, j: int) -> tuple[np.ndarray, np.ndarray]:
         """(rgb uint8 (H, W, 3), depth float32 metres (H, W)) of the dataset's own frame ``j``."""
         raise NotImplementedError
-
-    def _noise_key(self, j: int) -> int:
-        """Names frame ``j``'s depth image for :func:`add_depth_noise` (frames sharing one get one noise)."""
-        return j
 
     # --- shared -----------------------------------------------------------------------------
     def _finish_init(self) -> None:
@@ -268,7 +267,7 @@ class Dataset:
             )
         depth = np.where(finite & (depth > 0), depth, 0.0).astype(np.float32)
         if self.cfg.noise_share > 0:
-            depth = add_depth_noise(depth, self.cfg.noise_share, self.cfg.noise_sigma, self.cfg.noise_seed, self._noise_key(j))
+            depth = add_depth_noise(depth, self.cfg.noise_share, self.cfg.noise_sigma, self.cfg.noise_seed, zlib.crc32(depth.tobytes()))
         if self.cfg.depth_trunc > 0:
             depth = np.where(depth <= self.cfg.depth_trunc, depth, 0.0).astype(np.float32)
         if not depth.any():

@@ -152,16 +152,6 @@ class _FileDataset(Dataset):
     def describe(self, j, *, depth=False):
         return str(self.depth_paths[j]) if depth else f"{self.rgb_paths[j]} (depth {self.depth_paths[j]})"
 
-    def _noise_key(self, j):
-        # TUM pairs some depth images with two colour images: one noise per depth file, as
-        # corrupt_depth.py gives, so such repeats stay repeats.
-        if not hasattr(self, "_first_use"):  # built whole, then assigned: frames() reads on a thread
-            first: dict[pathlib.Path, int] = {}
-            for i, p in enumerate(self.depth_paths):
-                first.setdefault(p, i)
-            self._first_use = first
-        return self._first_use[self.depth_paths[j]]
-
 
 # --- TUM RGB-D -----------------------------------------------------------------------------------
 
