@@ -188,6 +188,25 @@ def _place(geom: GeometrySet, key, new, cloud_w: PointCloud, index) -> tuple[Geo
         points=append(geom.points, cloud_w.points),
         covs=append(geom.covs, cloud_w.covs),
         normals=append(geom.normals, cloud_w.normals),
+        weights=geom.weights.at[jnp.where(placed, slot, geom.capacity)].set(1.0, mode="drop"),
         count=geom.count + n_new,
     )
     return out, n_new, jnp.sum(first).astype(jnp.int32)
+
+
+def fuse(geom: GeometrySet, cloud_w: PointCloud) -> GeometrySet:
+    """Average the points of ``cloud_w`` (world frame) whose voxels T already holds into those
+    entries' positions (a running mean over every observation of the voxel), so that a noisy first
+    observation does not fix the surface for good. Shapes and normals stay the first ones'.
+
+    Sparse: each point adds ``(p - old) / (w + n)`` to its entry (``w`` the entry's weight, ``n``
+    the points of this frame in the voxel), which sums to the new mean; only the count is dense.
+    """
+    key, inside = pack(voxel_coords(geom, cloud_w.points))
+    slot, hit = _lookup(geom, key)
+    upd = cloud_w.valid & inside & hit
+    target = jnp.where(upd, slot, geom.capacity)
+    n = jnp.zeros_like(geom.weights).at[target].add(1.0, mode="drop")[slot]
+    step = (cloud_w.points - geom.points[:, slot]) / (geom.weights[slot] + n)
+    points = geom.points.at[:, target].add(jnp.where(upd, step, 0.0), mode="drop")
+    return dataclasses.replace(geom, points=points, weights=geom.weights.at[target].add(1.0, mode="drop"))

@@ -152,7 +152,9 @@ def track_step(
     healthy = failure == 0
     accepted = healthy | recovered
     # A failed frame's points never reach T: its pose is only a guess.
-    geom, ins = geometry.insert(state.geom, dataclasses.replace(transform_cloud(T, cloud), valid=cloud.valid & accepted))
+    cloud_w = dataclasses.replace(transform_cloud(T, cloud), valid=cloud.valid & accepted)
+    geom = geometry.fuse(state.geom, cloud_w) if cfg.fuse_points else state.geom
+    geom, ins = geometry.insert(geom, cloud_w)
     moved = (dt > 0) & healthy
     velocity = jnp.where(moved, (state.T_prev.inverse() @ T).log() / jnp.where(moved, dt, 1.0), state.velocity)
     velocity = jnp.where(jnp.all(jnp.isfinite(velocity)), velocity, state.velocity)

@@ -139,6 +139,7 @@ class GeometrySet:
     points: Float[Array, "3 n"]
     covs: Float[Array, "6 n"]
     normals: Float[Array, "3 n"]
+    weights: Float[Array, " n"]  # observations averaged into each point (sgad_jax.geometry.fuse)
     count: Int[Array, ""]
     origin: Float[Array, "3"]
     voxel_size: float = _static()
@@ -170,6 +171,7 @@ def empty_geometry(capacity: int, voxel_size: float, origin=(0.0, 0.0, 0.0)) -> 
         points=jnp.zeros((3, capacity), jnp.float32),
         covs=jnp.zeros((6, capacity), jnp.float32),
         normals=jnp.zeros((3, capacity), jnp.float32),
+        weights=jnp.zeros((capacity,), jnp.float32),
         count=jnp.zeros((), jnp.int32),
         origin=jnp.asarray(origin, jnp.float32),
         voxel_size=float(voxel_size),
