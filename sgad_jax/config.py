@@ -116,7 +116,7 @@ class TrackConfig:
     # outliers (noise spikes, flying pixels) are dropped before they bend their neighbours'
     # covariances or enter T. 0: off, as the paper (docs/method.md).
     median_gate: float = 0.01
-    fuse_points: bool = True  # each entry of T is the mean of its voxel's observations (the paper: the first)
+    fuse_observations: int = 4  # each entry of T: the mean of its voxel's first N observations (1: the first, as the paper)
 
     def __post_init__(self):
         if any(c < 1 for c in self.coarse):

@@ -194,17 +194,18 @@ def _place(geom: GeometrySet, key, new, cloud_w: PointCloud, index) -> tuple[Geo
     return out, n_new, jnp.sum(first).astype(jnp.int32)
 
 
-def fuse(geom: GeometrySet, cloud_w: PointCloud) -> GeometrySet:
+def fuse(geom: GeometrySet, cloud_w: PointCloud, cap: int) -> GeometrySet:
     """Average the points of ``cloud_w`` (world frame) whose voxels T already holds into those
-    entries' positions (a running mean over every observation of the voxel), so that a noisy first
-    observation does not fix the surface for good. Shapes and normals stay the first ones'.
+    entries' positions, a running mean of the voxel's first ``cap`` observations: a noisy first
+    observation does not fix the surface for good, and a settled entry does not follow the drift
+    of later frames. Shapes and normals stay the first ones'.
 
     Sparse: each point adds ``(p - old) / (w + n)`` to its entry (``w`` the entry's weight, ``n``
     the points of this frame in the voxel), which sums to the new mean; only the count is dense.
     """
     key, inside = pack(voxel_coords(geom, cloud_w.points))
     slot, hit = _lookup(geom, key)
-    upd = cloud_w.valid & inside & hit
+    upd = cloud_w.valid & inside & hit & (geom.weights[slot] < cap)
     target = jnp.where(upd, slot, geom.capacity)
     n = jnp.zeros_like(geom.weights).at[target].add(1.0, mode="drop")[slot]
     step = (cloud_w.points - geom.points[:, slot]) / (geom.weights[slot] + n)

@@ -153,7 +153,7 @@ def track_step(
     accepted = healthy | recovered
     # A failed frame's points never reach T: its pose is only a guess.
     cloud_w = dataclasses.replace(transform_cloud(T, cloud), valid=cloud.valid & accepted)
-    geom = geometry.fuse(state.geom, cloud_w) if cfg.fuse_points else state.geom
+    geom = geometry.fuse(state.geom, cloud_w, cfg.fuse_observations) if cfg.fuse_observations > 1 else state.geom
     geom, ins = geometry.insert(geom, cloud_w)
     moved = (dt > 0) & healthy
     velocity = jnp.where(moved, (state.T_prev.inverse() @ T).log() / jnp.where(moved, dt, 1.0), state.velocity)

@@ -167,8 +167,8 @@ def test_last_bucket_spills_into_the_extra_bucket():
 
 def test_fuse_is_the_running_mean_of_each_voxels_observations():
     """Against a host computation voxel by voxel: after an insertion and two fused frames, every
-    entry is the mean of all points that fell in its voxel, with their count as its weight; points
-    in empty voxels change nothing (insert takes them)."""
+    entry is the mean of the points that fell in its voxel while it had fewer than ``cap``, with
+    their count as its weight; points in empty voxels change nothing (insert takes them)."""
     rng = np.random.default_rng(1)
     v = 0.05
     def cloud(p, valid=None):
@@ -179,18 +179,21 @@ def test_fuse_is_the_running_mean_of_each_voxels_observations():
     geom, _ = jax.jit(geometry.insert)(empty_geometry(4096, v), cloud(first))
     frames = [first[:, rng.permutation(300)[:200]] + rng.normal(0, 0.01, (3, 200)) for _ in range(2)]
     valid = rng.uniform(size=200) < 0.8
-    fuse = jax.jit(geometry.fuse)
-    g = fuse(geom, cloud(frames[0], valid))
-    g = fuse(g, cloud(frames[1]))
+    cap = 2
+    fuse = jax.jit(geometry.fuse, static_argnums=2)
+    g = fuse(geom, cloud(frames[0], valid), cap)
+    g = fuse(g, cloud(frames[1]), cap)
     # the oracle: every observation grouped by voxel key
     key = lambda p: [tuple(k) for k in np.floor(p.T / v).astype(int)]  # noqa: E731
     c = int(geom.count)
     entries = np.asarray(geom.points[:, :c])
     obs = {k: [p] for k, p in zip(key(entries), entries.T)}
-    for p in np.concatenate([frames[0][:, valid], frames[1]], axis=1).T:
-        k = key(p[:, None])[0]
-        if k in obs:
-            obs[k].append(p)
+    for pts in (frames[0][:, valid], frames[1]):
+        before = {k: len(v_) for k, v_ in obs.items()}  # a frame's points in a voxel go in together
+        for p in pts.T:
+            k = key(p[:, None])[0]
+            if k in obs and before[k] < cap:
+                obs[k].append(p)
     want = np.stack([np.mean(obs[k], axis=0) for k in key(entries)], axis=1)
     np.testing.assert_allclose(np.asarray(g.points[:, :c]), want, atol=1e-5)
     np.testing.assert_array_equal(np.asarray(g.weights[:c]), [len(obs[k]) for k in key(entries)])
