@@ -47,6 +47,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--num-processes", type=int, default=None, help="multi-process run: number of processes (or $JAX_NUM_PROCESSES)")
     r.add_argument("--process-id", type=int, default=None, help="multi-process run: this process's id (or $JAX_PROCESS_ID)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--viewer", type=int, default=None, metavar="PORT", help="show the run live in a browser at http://HOST:PORT (viser; cameras, trajectory, measured points); after the run it serves the finished scene until Ctrl-C")
+    r.add_argument("--viewer-host", default="0.0.0.0", help="interface for --viewer (default: all)")
     r.add_argument("--export-ply", action="store_true", help="after the run, write the merged Gaussians to OUT/gaussians.ply (as `sgad-jax export`)")
     r.add_argument("--plots", action="store_true", help="after the run, draw OUT/trajectory.png and OUT/plots/ (as `sgad-jax plots`)")
     r.add_argument(
@@ -233,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
             cfg, args.out, track_only=args.track_only, save_renders=args.save_renders or args.mesh, progress=not args.quiet,
             resume=args.resume, checkpoint_every=args.checkpoint_every, devices=args.devices,
             holdout_every=args.holdout_every, finetune=args.finetune, on_bad_frame=args.on_bad_frame,
+            viewer=None if args.viewer is None else (args.viewer_host, args.viewer),
         )
         import jax
 
@@ -258,6 +261,8 @@ def main(argv: list[str] | None = None) -> int:
                 export_ply(args.out)
             if args.plots:
                 draw_plots(args.out)
+            if result.live is not None:
+                result.live.finish(args.out)
         except (ConfigError, DatasetError) as err:
             print(f"sgad-jax: error: {err}", file=sys.stderr)
             return 2

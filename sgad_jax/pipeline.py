@@ -52,6 +52,7 @@ class RunResult:
     poses: np.ndarray  # (f, 4, 4) camera-to-world
     timestamps: np.ndarray
     metrics: dict
+    live: object = None  # the live viewer (sgad_jax.viewer.LiveView) when one was asked for
 
 
 def peak_rss_mb() -> float:
@@ -581,6 +582,7 @@ def run(
     holdout_every: int = 0,
     finetune: int = 0,
     on_bad_frame: str = "stop",
+    viewer: tuple[str, int] | None = None,
 ) -> RunResult:
     """Run SLAM over ``cfg.data`` and write the outputs to ``out_dir`` (if given).
 
@@ -597,6 +599,8 @@ def run(
     (with ``checkpoint_every`` > 0) so that ``resume`` continues from it once it is fixed. With
     ``"skip"`` the frame is left out and listed in the metrics' ``skipped_frames``; run indices
     (renders, Gaussians, ``per_frame``) then count the frames kept, the rows of ``trajectory.txt``.
+    ``viewer`` (host, port) serves the run live in a browser (:class:`sgad_jax.viewer.LiveView`,
+    returned in the result).
 
     Raises:
         DatasetError: on bad input (after writing whatever was computed before it).
@@ -637,6 +641,11 @@ def run(
     if main:
         for line in ds.warnings:
             print(f"sgad-jax: warning: {line}", file=sys.stderr)
+    live = None
+    if viewer is not None and main:
+        from sgad_jax.viewer import LiveView
+
+        live = LiveView(ds.intrinsics, host=viewer[0], port=viewer[1])
     start = 0
     if restored is not None:
         meta = restored[1]["run"]
@@ -669,10 +678,12 @@ def run(
                     tqdm.write(f"sgad-jax: skipped: {problem}", file=sys.stderr)
             else:
                 try:
-                    system.add(sample)
+                    pose = system.add(sample)
                 except TrackingDiverged as err:
                     raise DatasetError(f"{ds.name} frame {sample.source_index}: {err}") from None
                 kept.append(i)
+                if live is not None:
+                    live.frame(len(system) - 1, pose, sample)
             bar.update(1)
             if (i + 1) % RSS_EVERY == 0:
                 rss_trace.append([i + 1, current_rss_mb()])
@@ -718,7 +729,7 @@ def run(
         write_json(out / "metrics.json", metrics)
     if stopped:
         raise DatasetError(stopped)
-    return RunResult(poses=poses_np, timestamps=stamps_np, metrics=metrics)
+    return RunResult(poses=poses_np, timestamps=stamps_np, metrics=metrics, live=live)
 
 
 def _timestamp_problem(ds: Dataset, sample, stamps: list[float]) -> str | None:

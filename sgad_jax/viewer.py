@@ -119,3 +119,49 @@ def serve(run_dir, *, host: str = "0.0.0.0", port: int = 8080, max_splats: int =
             time.sleep(3600)
     except KeyboardInterrupt:
         server.stop()
+
+
+class LiveView:
+    """``sgad-jax run --viewer PORT``: the run as it happens. Each tracked frame adds its camera
+    and extends the trajectory; every ``points_every``-th frame adds its measured points (every
+    ``stride``-th pixel, coloured). When the run ends, :meth:`finish` adds the finished run's scene
+    (merged Gaussians, mesh) as ``sgad-jax view`` shows it. Built only when asked for."""
+
+    def __init__(self, intr, *, host: str = "0.0.0.0", port: int = 8080, points_every: int = 5, stride: int = 4):
+        viser = _viser()
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.scene.set_up_direction("-y")
+        self.intr, self.points_every, self.stride = intr, points_every, stride
+        self.centres: list[np.ndarray] = []
+        print(f"sgad-jax: live viewer at http://{host}:{port}", file=sys.stderr, flush=True)
+
+    def frame(self, index: int, pose: np.ndarray, sample) -> None:
+        """Show tracked frame ``index`` (camera-to-world ``pose``, the sample it was tracked from)."""
+        intr, scene = self.intr, self.server.scene
+        x, y, z, w = matrix_to_quaternion(pose[:3, :3])
+        fov = 2 * math.atan2(intr.height / 2, float(intr.fy))
+        scene.add_camera_frustum(f"/cameras/{index:06d}", fov=fov, aspect=intr.width / intr.height, scale=0.05, color=(40, 90, 220), wxyz=(w, x, y, z), position=tuple(pose[:3, 3]))
+        self.centres.append(pose[:3, 3])
+        if len(self.centres) >= 2:
+            c = np.asarray(self.centres, np.float32)
+            scene.add_line_segments("/trajectory", np.stack([c[:-1], c[1:]], 1), colors=(220, 60, 40), thickness=0.005)
+        if index % self.points_every == 0:
+            s = self.stride
+            depth, rgb = sample.depth[::s, ::s], sample.rgb[::s, ::s]
+            v, u = np.mgrid[0 : sample.depth.shape[0] : s, 0 : sample.depth.shape[1] : s]
+            ok = depth > 0
+            z_ = depth[ok]
+            cam = np.stack([(u[ok] - float(intr.cx)) / float(intr.fx) * z_, (v[ok] - float(intr.cy)) / float(intr.fy) * z_, z_], 1)
+            world = cam @ pose[:3, :3].T + pose[:3, 3]
+            scene.add_point_cloud(f"/points/{index:06d}", points=world.astype(np.float32), colors=rgb[ok], point_size=0.01)
+
+    def finish(self, run_dir) -> None:
+        """Replace the live points by the finished run's scene, and keep serving until Ctrl-C."""
+        self.server.scene.reset()
+        summary = build_scene(self.server, run_dir)
+        print(f"sgad-jax: run finished ({summary['frames']} frames); the viewer serves it until Ctrl-C", file=sys.stderr, flush=True)
+        try:
+            while True:
+                time.sleep(3600)
+        except KeyboardInterrupt:
+            self.server.stop()

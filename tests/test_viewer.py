@@ -97,3 +97,37 @@ def test_view_bad_folder_one_line(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nowhere")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "run folder not found" in err
+
+
+@pytest.mark.slow
+def test_run_with_live_viewer_answers_http_while_and_after_it_runs(tmp_path):
+    """`sgad-jax run --viewer PORT` serves the page during the run (the cameras appear as frames
+    are tracked) and, when it is done, the finished scene until it is stopped."""
+    port = _free_port()
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sgad_jax", "run", "--out", str(out), "--track-only", "--quiet", "--max-frames", "40",
+         "--set", "data.synthetic.frames=40", "--checkpoint-every", "0", "--viewer", str(port), "--viewer-host", "127.0.0.1"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+    )
+    try:
+        deadline, during, after = time.monotonic() + 300, None, None
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as r:
+                    if r.status == 200:
+                        done = (out / "metrics.json").exists()
+                        during = during or not done
+                        if done:
+                            after = True
+                            break
+            except OSError:
+                pass
+            time.sleep(0.2)
+        assert proc.poll() is None, proc.stderr.read().decode()
+        assert after, "the viewer answered after the run"
+        assert during, "the viewer answered while frames were being tracked"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
