@@ -120,10 +120,14 @@ def test_bad_tum_frames_stop_resume_and_skip(tmp_path, capsys):
     assert clean["skipped_frames"] == []
 
     keep = {p: p.read_bytes() for p in (ds.rgb_paths[a], ds.depth_paths[b], ds.depth_paths[c])}
-    ds.rgb_paths[a].write_bytes(keep[ds.rgb_paths[a]][:-2000])
-    ds.depth_paths[b].unlink()
-    cv2.imwrite(str(ds.depth_paths[c]), np.zeros((480, 640), np.uint16))
-    capsys.readouterr()
+
+    def corrupt():
+        ds.rgb_paths[a].write_bytes(keep[ds.rgb_paths[a]][:-2000])
+        ds.depth_paths[b].unlink()
+        cv2.imwrite(str(ds.depth_paths[c]), np.zeros((480, 640), np.uint16))
+        capsys.readouterr()
+
+    corrupt()
 
     out = tmp_path / "stop"
     assert main(["run", *base, "--out", str(out), "--checkpoint-every", "10"]) == 2
@@ -138,10 +142,7 @@ def test_bad_tum_frames_stop_resume_and_skip(tmp_path, capsys):
     assert resumed["resumed_from_frame"] == a and resumed["frames"] == len(ds)
     np.testing.assert_allclose(read_tum_trajectory(out / "trajectory.txt")[1], read_tum_trajectory(tmp_path / "clean" / "trajectory.txt")[1], atol=1e-5)
 
-    ds.rgb_paths[a].write_bytes(keep[ds.rgb_paths[a]][:-2000])
-    ds.depth_paths[b].unlink()
-    cv2.imwrite(str(ds.depth_paths[c]), np.zeros((480, 640), np.uint16))
-    capsys.readouterr()
+    corrupt()
     out = tmp_path / "skip"
     assert main(["run", *base, "--out", str(out), "--on-bad-frame", "skip"]) == 0
     err = capsys.readouterr().err
