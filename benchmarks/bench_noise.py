@@ -39,11 +39,10 @@ def main() -> None:
 
     import jax.numpy as jnp
 
-    from bench_track import _small_gicp_track
+    from bench_track import _small_gicp_track, read_sequence
     from sgad_jax import lie, pipeline, slam
     from sgad_jax.cli import resolve_config
     from sgad_jax.eval.ate import ate
-    from sgad_jax.io.datasets import open_dataset
 
     seeds = [int(s) for s in args.seeds.split(",")]
     steps = {}
@@ -51,14 +50,7 @@ def main() -> None:
         for seed in seeds[:1] if level == 0 else seeds:
             noise = [f"data.noise_share={level}", f"data.noise_seed={seed}", f"data.stride={args.stride}"]
             cfg = resolve_config(args.config, args.data or None, start=args.start, max_frames=args.max_frames, overrides=args.overrides + noise)
-            ds = open_dataset(cfg.data)
-            samples = [ds[i] for i in range(len(ds))]
-            depths = [s.depth for s in samples]
-            hold = cfg.track.hold_repeated_depth
-            repeated = [hold and pipeline.repeats(d, p) for d, p in zip(depths, [None, *depths[:-1]])]
-            depth_stamps = np.array([s.depth_timestamp for s in samples])
-            frame_stamps = np.array([s.timestamp for s in samples])
-            dts = np.diff(depth_stamps, prepend=depth_stamps[0]).astype(np.float32)
+            ds, depths, repeated, depth_stamps, frame_stamps, dts = read_sequence(cfg)
             tcfg, intr = cfg.track, ds.intrinsics
             T0 = pipeline.initial_pose(ds)
             T0_matrix = np.asarray(T0.as_matrix(), np.float64)  # before the state's buffers are donated

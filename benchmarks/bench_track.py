@@ -114,6 +114,24 @@ def _stage_times(tcfg, geom, depth, intr, T) -> dict:
     return out
 
 
+def read_sequence(cfg):
+    """Every frame of ``cfg.data`` read first (timings exclude file I/O): the dataset, the depth
+    images, which repeat the previous one, the depth and frame stamps, and the time since the
+    previous depth image (a repeated one moves the clock on, as in ``SLAM.add``)."""
+    from sgad_jax import pipeline
+    from sgad_jax.io.datasets import open_dataset
+
+    ds = open_dataset(cfg.data)
+    samples = [ds[i] for i in range(len(ds))]
+    depths = [s.depth for s in samples]
+    hold = cfg.track.hold_repeated_depth
+    repeated = [hold and pipeline.repeats(d, prev) for d, prev in zip(depths, [None, *depths[:-1]])]
+    depth_stamps = np.array([s.depth_timestamp for s in samples])
+    frame_stamps = np.array([s.timestamp for s in samples])
+    dts = np.diff(depth_stamps, prepend=depth_stamps[0]).astype(np.float32)
+    return ds, depths, repeated, depth_stamps, frame_stamps, dts
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True)
@@ -134,18 +152,9 @@ def main() -> None:
     from sgad_jax import lie, pipeline, slam
     from sgad_jax.cli import resolve_config
     from sgad_jax.eval.ate import ate
-    from sgad_jax.io.datasets import open_dataset
 
     cfg = resolve_config(args.config, args.data, start=args.start, max_frames=args.max_frames, overrides=args.overrides)
-    ds = open_dataset(cfg.data)
-    samples = [ds[i] for i in range(len(ds))]  # read everything first: timings exclude file I/O
-    depths = [s.depth for s in samples]
-    hold = cfg.track.hold_repeated_depth
-    repeated = [hold and pipeline.repeats(d, prev) for d, prev in zip(depths, [None, *depths[:-1]])]
-    depth_stamps = np.array([s.depth_timestamp for s in samples])
-    frame_stamps = np.array([s.timestamp for s in samples])
-    # Time since the previous depth image; a repeated one moves the clock on (see SLAM.add).
-    dts = np.diff(depth_stamps, prepend=depth_stamps[0]).astype(np.float32)
+    ds, depths, repeated, depth_stamps, frame_stamps, dts = read_sequence(cfg)
     gt = ds.gt_poses
     intr = ds.intrinsics
     tcfg = cfg.track

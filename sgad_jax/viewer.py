@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from sgad_jax.camera import backproject_image
 from sgad_jax.config import ConfigError
 from sgad_jax.io.ply import read_mesh_ply
 from sgad_jax.io.rundir import Run, read_render
@@ -147,12 +148,9 @@ class LiveView:
             scene.add_line_segments("/trajectory", np.stack([c[:-1], c[1:]], 1), colors=(220, 60, 40), thickness=0.005)
         if index % self.points_every == 0:
             s = self.stride
-            depth, rgb = sample.depth[::s, ::s], sample.rgb[::s, ::s]
-            v, u = np.mgrid[0 : sample.depth.shape[0] : s, 0 : sample.depth.shape[1] : s]
-            ok = depth > 0
-            z_ = depth[ok]
-            cam = np.stack([(u[ok] - float(intr.cx)) / float(intr.fx) * z_, (v[ok] - float(intr.cy)) / float(intr.fy) * z_, z_], 1)
-            world = cam @ pose[:3, :3].T + pose[:3, 3]
+            cam = np.asarray(backproject_image(sample.depth, intr))[::s, ::s]
+            rgb, ok = sample.rgb[::s, ::s], sample.depth[::s, ::s] > 0
+            world = cam[ok] @ pose[:3, :3].T + pose[:3, 3]
             scene.add_point_cloud(f"/points/{index:06d}", points=world.astype(np.float32), colors=rgb[ok], point_size=0.01)
 
     def finish(self, run_dir) -> None:
