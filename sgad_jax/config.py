@@ -171,12 +171,21 @@ class SceneConfig:
     """The scene renderer and what is judged with it: held-out views and merged-map refinement."""
 
     frames: int = 8  # k: mapped frames whose Gaussians render a view (those that best cover it)
-    layers: int = 4  # nearest Gaussians kept per pixel slot when compositing several frames
+    # priority: each frame's render over the farther frames' (occluders excepted); depth: all
+    # Gaussians merged in depth order (docs/method.md, "The scene")
+    composite: str = "priority"
+    layers: int = 4  # with composite=depth: nearest Gaussians kept per pixel slot
     finetune_lr_scale: float = 1.0  # learning rates of the merged-map refinement, times the mapping ones
     # Offsets move in the refinement too. Off by default: in a merged, depth-sorted render the depth
     # loss reaches only the front-most Gaussian, and pushing it back ratchets whole surfaces
     # backwards (docs/method.md).
     finetune_offsets: bool = False
+
+    def __post_init__(self):
+        if self.composite not in ("priority", "depth"):
+            raise ConfigError(f"scene.composite: choose priority or depth, got {self.composite!r}")
+        if self.frames < 1 or self.layers < 1:
+            raise ConfigError(f"scene.frames and scene.layers: >= 1, got {self.frames} and {self.layers}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -122,16 +122,6 @@ def render_into(
     return jax.lax.cond(own, own_view, other_view, None)
 
 
-def over(front: splat.Render, back: splat.Render) -> splat.Render:
-    """``front`` composited over ``back``."""
-    rest = 1.0 - front.alpha
-    return splat.Render(
-        rgb=front.rgb + rest[..., None] * back.rgb,
-        depth=front.depth + rest * back.depth,
-        alpha=front.alpha + rest * back.alpha,
-    )
-
-
 def view_loss(
     cfg: MapConfig,
     g: PixelGaussians,
@@ -153,7 +143,7 @@ def view_loss(
     out = render_into(g, pose, view.pose, intr, k == 0, window, own_at_pose=own_at_pose)
     if background is not None:
         keep = jnp.asarray(k == 0, out.alpha.dtype)
-        out = over(out, jax.tree.map(lambda x: keep * x, background))
+        out = splat.over(out, jax.tree.map(lambda x: keep * x, background))
     covered = jax.lax.stop_gradient(out.alpha) > COVERAGE if cfg.coverage_mask else jnp.ones_like(out.alpha, bool)
     mask = jnp.where(k == 0, 1.0, jnp.asarray(covered, out.alpha.dtype))
     # Depth is compared after normalising by the accumulated opacity: at a partly covered pixel the
@@ -216,7 +206,7 @@ def render_frame(g: PixelGaussians, pose: lie.SE3, background: splat.Render | No
     neighbours fill what they leave uncovered: each frame's Gaussians are fitted to its own view,
     so mixing two frames' fits of one surface by depth would blend them."""
     own = splat.render_own(g, pose, intr, window=window)
-    return own if background is None else over(own, background)
+    return own if background is None else splat.over(own, background)
 
 
 def refine_pose(

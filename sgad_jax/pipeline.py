@@ -261,7 +261,7 @@ class _Mapper:
             f = frames(view)
             gs, st, loss = scene.finetune_step(
                 self.cfg.map, gs, st, ps, present, f.rgb, f.depth, f.valid, _pose(poses[view]), self.intr,
-                layers=self.cfg.scene.layers, lr_scale=self.cfg.scene.finetune_lr_scale, offsets=self.cfg.scene.finetune_offsets,
+                composite=self.cfg.scene.composite, layers=self.cfg.scene.layers, lr_scale=self.cfg.scene.finetune_lr_scale, offsets=self.cfg.scene.finetune_offsets,
             )
             gs, st = jax.tree.map(np.asarray, (gs, st))
             for j, i in enumerate(chosen):

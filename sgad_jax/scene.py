@@ -1,9 +1,13 @@
 """The scene as a radiance field: render any pose from the mapped frames that cover it.
 
 A scene is the set of every mapped frame's learned pixel-aligned Gaussians at its pose. A view is
-rendered from the ``k`` mapped frames that best cover it (:func:`select_frames`, on the host),
-their Gaussians binned together into ``layers`` depth-ordered slots per pixel and composited front
-to back in true depth order (:func:`render_scene`: pure, jitted, fixed shapes).
+rendered from the ``k`` mapped frames that best cover it (:func:`select_frames`, on the host), put
+in priority order, nearest camera first (:func:`priority`). :func:`render_scene` (pure, jitted,
+fixed shapes) renders each frame's Gaussians into the view and composites the frames' images in
+that order, each over the later ones, except where a later frame's surface lies in front by more
+than :data:`OCCLUSION_TOLERANCE` of the depth: each frame's Gaussians are a fit of its own view,
+so the nearest fit is shown whole instead of interleaving several by depth (docs/method.md,
+"The scene"). ``composite="depth"`` merges all frames in depth order instead.
 
 :func:`finetune_step` is one Adam step of the merged-map refinement (the paper fine-tunes the merged
 map before judging novel views): a training view rendered from its ``k`` frames, whose Gaussians
@@ -30,9 +34,16 @@ SCORE_STEP = 0.1
 FOOTPRINT_GRID = (24, 32)
 #: The view's cells that :func:`select_frames` covers.
 VIEW_CELLS = (12, 16)
+#: A later frame's surface shows in front of an earlier one's where it is nearer by more than this
+#: share of the earlier one's depth (an occluder), not where the two are one surface fitted twice.
+OCCLUSION_TOLERANCE = 0.1
+#: Priority order: camera distance plus this many metres per radian between the optical axes.
+ANGLE_METRES = 0.1
+#: A frame's surface counts where its opacity reaches this.
+COVERED = 0.5
 
 
-@functools.partial(jax.jit, static_argnames=("layers", "window"))
+@functools.partial(jax.jit, static_argnames=("composite", "layers", "window"))
 def render_scene(
     gs: PixelGaussians,
     poses: lie.SE3,
@@ -40,21 +51,53 @@ def render_scene(
     intr: Intrinsics,
     present: Bool[Array, " k"] | None = None,
     *,
+    composite: str = "priority",
     layers: int = 4,
     window: int = 3,
 ) -> splat.Render:
     """Colour, depth and opacity of the view at camera-to-world ``view_pose`` rendered from the
-    Gaussians of ``k`` frames ``gs`` (stacked ``(k, h, w)``) at camera-to-world ``poses``.
+    Gaussians of ``k`` frames ``gs`` (stacked ``(k, h, w)``, in priority order) at camera-to-world
+    ``poses``. ``present`` (``(k,)``) hides frames that are padding.
 
-    Each pixel slot keeps the ``layers`` nearest Gaussians whose centre rounds onto it, so a
-    surface hidden behind ``layers`` others is dropped: with ``k`` frames seeing one opaque surface
-    about ``k`` Gaussians share a slot on it, a few of which already saturate its opacity.
-    ``present`` (``(k,)``) hides frames that are padding.
+    ``composite="priority"``: each frame rendered alone (its nearest Gaussian per pixel slot, so
+    its own occlusions hold), then composited front to back in the frames' order, a later frame
+    coming forward only where its surface is nearer than the earlier result's by more than
+    :data:`OCCLUSION_TOLERANCE` of the depth (:func:`priority_over`). ``"depth"``: all Gaussians
+    binned together, the ``layers`` nearest per slot, composited in true depth order.
     """
     if present is not None:
         hide = jnp.where(present, 0.0, -1e4)[:, None, None]
         gs = dataclasses.replace(gs, opacity_logit=gs.opacity_logit + hide)
-    return splat.render(gs, poses, view_pose, intr, layers=layers, window=window)
+    if composite == "depth":
+        return splat.render(gs, poses, view_pose, intr, layers=layers, window=window)
+    if composite != "priority":
+        raise ValueError(f"composite: priority or depth, got {composite!r}")
+    one = lambda x: x[None]  # noqa: E731
+    each = jax.vmap(lambda g, p: splat.render(jax.tree.map(one, g), jax.tree.map(one, p), view_pose, intr, layers=1, window=window))(gs, poses)
+    out = jax.tree.map(lambda x: x[-1], each)
+    for j in range(gs.depth.shape[0] - 2, -1, -1):
+        out = priority_over(jax.tree.map(lambda x: x[j], each), out)
+    return out
+
+
+def priority_over(front: splat.Render, back: splat.Render, tolerance: float = OCCLUSION_TOLERANCE) -> splat.Render:
+    """``front`` over ``back``, except at pixels where ``back``'s surface is covered and nearer than
+    ``front``'s by more than ``tolerance`` of ``front``'s depth: there ``back`` occludes it."""
+    near_front = front.depth / jnp.maximum(front.alpha, 1e-3)
+    near_back = back.depth / jnp.maximum(back.alpha, 1e-3)
+    occludes = jax.lax.stop_gradient((back.alpha > COVERED) & (near_back < (1.0 - tolerance) * near_front))
+    a, b = splat.over(front, back), splat.over(back, front)
+    return splat.Render(
+        rgb=jnp.where(occludes[..., None], b.rgb, a.rgb), depth=jnp.where(occludes, b.depth, a.depth), alpha=jnp.where(occludes, b.alpha, a.alpha)
+    )
+
+
+def priority(view_pose: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Order of the frames at camera-to-world ``poses`` for a view: camera distance plus
+    :data:`ANGLE_METRES` per radian between the optical axes, smallest first."""
+    dist = np.linalg.norm(poses[:, :3, 3] - view_pose[:3, 3], axis=1)
+    angle = np.arccos(np.clip(poses[:, :3, 2] @ view_pose[:3, 2], -1.0, 1.0))
+    return np.argsort(dist + ANGLE_METRES * angle, kind="stable")
 
 
 def footprint(depth: np.ndarray, valid: np.ndarray, pose: np.ndarray, intr: Intrinsics) -> np.ndarray:
@@ -132,11 +175,13 @@ class Scene:
         self.points[index] = footprint(np.asarray(depth), np.asarray(valid), self.poses[index], self.intr)
 
     def frames_for(self, view_pose: np.ndarray) -> list[int]:
-        """The mapped frames that render the view, best first (:func:`select_frames`)."""
+        """The mapped frames that render the view (:func:`select_frames`), in priority order
+        (:func:`priority`)."""
         mapped = sorted(self.poses)
         poses = np.stack([self.poses[i] for i in mapped])
         pts = np.stack([self.points[i] for i in mapped])
-        return [mapped[j] for j in select_frames(view_pose, poses, pts, self.intr, self.cfg.frames)]
+        chosen = select_frames(view_pose, poses, pts, self.intr, self.cfg.frames)
+        return [mapped[chosen[j]] for j in priority(view_pose, poses[chosen])]
 
     def stack(self, chosen: list[int], get=None) -> tuple[PixelGaussians, lie.SE3, np.ndarray]:
         """The chosen frames' (Gaussians, poses, present), padded to ``cfg.frames``."""
@@ -149,7 +194,7 @@ class Scene:
     def render(self, view_pose: np.ndarray) -> splat.Render:
         """The view at camera-to-world ``view_pose`` (numpy colour, depth, opacity)."""
         gs, poses, present = self.stack(self.frames_for(view_pose))
-        out = render_scene(gs, poses, lie.from_matrix(view_pose), self.intr, present, layers=self.cfg.layers)
+        out = render_scene(gs, poses, lie.from_matrix(view_pose), self.intr, present, composite=self.cfg.composite, layers=self.cfg.layers)
         return jax.tree.map(np.asarray, out)
 
     # checkpoints
@@ -191,7 +236,7 @@ def _learning_rates(cfg: MapConfig, scale: float) -> PixelGaussians:
     )
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "layers", "lr_scale", "offsets"))
+@functools.partial(jax.jit, static_argnames=("cfg", "composite", "layers", "lr_scale", "offsets"))
 def finetune_step(
     cfg: MapConfig,
     gs: PixelGaussians,
@@ -204,6 +249,7 @@ def finetune_step(
     view_pose: lie.SE3,
     intr: Intrinsics,
     *,
+    composite: str = "priority",
     layers: int = 4,
     lr_scale: float = 1.0,
     offsets: bool = False,
@@ -215,7 +261,7 @@ def finetune_step(
     (and learned in mapping)."""
 
     def loss_fn(g):
-        out = render_scene(g, poses, view_pose, intr, present, layers=layers)
+        out = render_scene(g, poses, view_pose, intr, present, composite=composite, layers=layers)
         # depth normalised by the accumulated opacity, as in mapping (partial cover is not a depth error)
         d = out.depth / jnp.maximum(out.alpha, 1e-3)
         return losses.mapping_loss(out.rgb, d, rgb, depth, valid, weight_l1=cfg.weight_l1, weight_ssim=cfg.weight_ssim, weight_depth=cfg.weight_depth)

@@ -73,6 +73,12 @@ class Render(NamedTuple):
     alpha: Float[Array, "h w"]
 
 
+def over(front: Render, back: Render) -> Render:
+    """``front`` composited over ``back``."""
+    rest = 1.0 - front.alpha
+    return Render(rgb=front.rgb + rest[..., None] * back.rgb, depth=front.depth + rest * back.depth, alpha=front.alpha + rest * back.alpha)
+
+
 def surface_depth(r: Render, min_alpha: float = 1e-3) -> Float[Array, "h w"]:
     """The depth of the rendered surface: the blended depth over the accumulated opacity (a pixel
     covered at opacity 0.9 would otherwise read 10% too near); 0 where nothing is rendered."""

@@ -44,8 +44,8 @@ def _slot_counts(gs, poses, view, intr, window=3) -> int:
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_render_scene_matches_the_dense_reference(seed):
-    """Values and vector-Jacobian products (colours, opacities, offsets, radii, the view pose) of
-    three overlapping frames, with enough layers that no Gaussian is dropped."""
+    """Depth compositing: values and vector-Jacobian products (colours, opacities, offsets, radii,
+    the view pose) of three overlapping frames, with enough layers that no Gaussian is dropped."""
     with jax.enable_x64(True):
         intr = _intr()
         gs = _frames(3, seed)
@@ -53,7 +53,7 @@ def test_render_scene_matches_the_dense_reference(seed):
         view = lie.exp(jnp.asarray(np.random.default_rng(seed + 20).normal(0, 0.04, 6)))
         layers = _slot_counts(gs, poses, view, intr)
         assert 2 <= layers <= 12
-        fast = scene.render_scene(gs, poses, view, intr, layers=layers)
+        fast = scene.render_scene(gs, poses, view, intr, composite="depth", layers=layers)
         ref = jax.jit(splat_ref.render)(gs, poses, view, intr)
         for a, b in zip(fast, ref):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-9)
@@ -68,10 +68,88 @@ def test_render_scene_matches_the_dense_reference(seed):
 
         xi0 = jnp.zeros(6)
         grad = lambda render: jax.jit(jax.grad(lambda g, xi: vjp(render, g, xi), argnums=(0, 1)))(pick(gs), xi0)  # noqa: E731
-        got = grad(lambda g, v: scene.render_scene(g, poses, v, intr, layers=layers))
+        got = grad(lambda g, v: scene.render_scene(g, poses, v, intr, composite="depth", layers=layers))
         want = grad(lambda g, v: splat_ref.render(g, poses, v, intr))
         for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-9)
+
+
+def _priority_reference(gs, poses, view, intr, tolerance):
+    """The priority composite from the dense reference renderer, frame by frame: at each pixel the
+    frames' surfaces from the last to the first, each laid over the result so far unless the
+    result's covered surface lies nearer than (1 - tolerance) times its own."""
+    rgb, depth, alpha = None, None, None
+    for j in reversed(range(gs.depth.shape[0])):
+        r = splat_ref.render(jax.tree.map(lambda x: x[j : j + 1], gs), jax.tree.map(lambda x: x[j : j + 1], poses), view, intr)
+        if rgb is None:
+            rgb, depth, alpha = r
+            continue
+        surf_new = r[1] / jnp.maximum(r[2], 1e-3)
+        surf_old = depth / jnp.maximum(alpha, 1e-3)
+        old_in_front = jax.lax.stop_gradient((alpha > 0.5) & (surf_old < (1 - tolerance) * surf_new))
+        t_new, t_old = 1 - r[2], 1 - alpha
+        rgb = jnp.where(old_in_front[..., None], rgb + t_old[..., None] * r[0], r[0] + t_new[..., None] * rgb)
+        depth = jnp.where(old_in_front, depth + t_old * r[1], r[1] + t_new * depth)
+        alpha = jnp.where(old_in_front, alpha + t_old * r[2], r[2] + t_new * alpha)
+    return rgb, depth, alpha
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_priority_render_scene_matches_the_dense_reference(seed):
+    """Priority compositing (the default): values and vector-Jacobian products against the dense
+    reference renderer of each frame composited by an independent per-pixel rule."""
+    with jax.enable_x64(True):
+        intr = _intr()
+        # frames of two walls (1.5 and 2.5 m, the second a separate surface): within a frame no two
+        # Gaussians share a slot, so one layer a frame holds them all, as the dense reference does
+        gs = _frames(3, seed)
+        wall = jnp.where(jnp.arange(W) < W // 2, 1.5, 2.5)
+        gs = dataclasses.replace(gs, depth=jnp.broadcast_to(wall, gs.depth.shape) + 0.3 * jnp.arange(3.0)[:, None, None], offset=0.05 * gs.offset)
+        poses = lie.exp(jnp.asarray(np.random.default_rng(seed + 10).normal(0, 0.01, (3, 6))))
+        view = lie.exp(jnp.asarray(np.random.default_rng(seed + 20).normal(0, 0.01, 6)))
+        assert max(_slot_counts(jax.tree.map(lambda x: x[j : j + 1], gs), jax.tree.map(lambda x: x[j : j + 1], poses), view, intr) for j in range(3)) == 1
+        fast = scene.render_scene(gs, poses, view, intr)
+        ref = _priority_reference(gs, poses, view, intr, scene.OCCLUSION_TOLERANCE)
+        for a, b in zip(fast, ref):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-9)
+
+        rng = np.random.default_rng(seed + 30)
+        ct = [jnp.asarray(rng.normal(size=x.shape)) for x in ref]
+
+        def vjp(render, g):
+            out = render(dataclasses.replace(gs, rgb=g[0], opacity_logit=g[1], offset=g[2], log_radius=g[3]))
+            return sum(jnp.vdot(o, c) for o, c in zip(out, ct))
+
+        pick = (gs.rgb, gs.opacity_logit, gs.offset, gs.log_radius)
+        got = jax.grad(lambda g: vjp(lambda x: scene.render_scene(x, poses, view, intr), g))(pick)
+        want = jax.grad(lambda g: vjp(lambda x: _priority_reference(x, poses, view, intr, scene.OCCLUSION_TOLERANCE), g))(pick)
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-9)
+
+
+def test_priority_keeps_the_first_frame_but_not_behind_an_occluder():
+    """Two frames of one wall 3 m away, coloured red (first) and green (second); the second also
+    holds a blue box 1 m away. The wall shows red (the second frame's wall is the same surface,
+    5 cm behind), the box shows blue (it is nearer by far more than the tolerance)."""
+    with jax.enable_x64(True):
+        intr = _intr()
+        depth = np.full((2, H, W), 3.0)
+        depth[1] += 0.05
+        depth[1, 3:6, 4:8] = 1.0
+        rgb = np.zeros((2, H, W, 3))
+        rgb[0, ..., 0] = 1.0
+        rgb[1, ..., 1] = 1.0
+        rgb[1, 3:6, 4:8] = (0.0, 0.0, 1.0)
+        gs = PixelGaussians(
+            rgb=jnp.asarray(rgb), log_radius=jnp.log(jnp.asarray(depth) * 3.0 / 13.0), opacity_logit=jnp.full((2, H, W), 6.0),
+            offset=jnp.zeros((2, H, W)), depth=jnp.asarray(depth),
+        )
+        poses = lie.exp(jnp.zeros((2, 6)))
+        out = scene.render_scene(gs, poses, lie.exp(jnp.zeros(6)), intr)
+        colour = np.asarray(out.rgb)
+        assert colour[1, 1, 0] > 0.95 and colour[1, 1, 1] < 0.05  # the wall: the first frame's red
+        assert colour[4, 6, 2] > 0.95 and colour[4, 6, 0] < 0.05  # the box: the second frame's blue
+        assert abs(float(out.depth[4, 6] / out.alpha[4, 6]) - 1.0) < 0.01
 
 
 def test_render_scene_hides_padding_frames():
@@ -81,7 +159,7 @@ def test_render_scene_hides_padding_frames():
         poses = lie.exp(jnp.asarray(np.random.default_rng(5).normal(0, 0.04, (3, 6))))
         view = lie.exp(jnp.zeros(6))
         two = jax.tree.map(lambda x: x[:2], gs), jax.tree.map(lambda x: x[:2], poses)
-        padded = scene.render_scene(gs, poses, view, intr, jnp.array([True, True, False]), layers=12)
+        padded = scene.render_scene(gs, poses, view, intr, jnp.array([True, True, False]), composite="depth", layers=12)
         ref = jax.jit(splat_ref.render)(*two, view, intr)
         for a, b in zip(padded, ref):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-9)
