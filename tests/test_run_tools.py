@@ -61,6 +61,8 @@ def test_eval_reproduces_the_run(run_dir, capsys):
     assert ev["psnr"] == pytest.approx(m["psnr"], abs=0.05)
     assert ev["ssim"] == pytest.approx(m["ssim"], abs=2e-3)
     assert ev["depth_l1_cm"] == pytest.approx(m["depth_l1_cm"], abs=5e-3)
+    if m.get("lpips") is not None:  # the LPIPS weights are installed
+        assert ev["lpips"] == pytest.approx(m["lpips"], abs=5e-3)
     assert ev["frames"] == ev["rendered_frames"] == 4 and len(ev["per_frame"]) == 4
     report = (run_dir / "report.md").read_text()
     assert "ate_rmse_cm" in report and f"{m['ate_rmse_cm']:.4f}" in report

@@ -4,8 +4,8 @@ Trajectory metrics from ``trajectory.txt`` against the dataset's ground truth (o
 config in ``metrics.json``): ATE RMSE / mean / median / max after SE(3) alignment of positions
 (:func:`sgad_jax.eval.ate.ate`) and RPE between consecutive frames. Image metrics from the saved
 renders (``renders/``, written by ``run --save-renders``) against the dataset's frames: PSNR under an
-explicit protocol, SSIM, MS-SSIM (images large enough) and rendered depth L1 in cm over valid-depth
-pixels. The renders are 8-bit colour and millimetre depth PNGs, so PSNR differs from the run's
+explicit protocol, SSIM, MS-SSIM (images large enough), LPIPS (when its weights are installed) and
+rendered depth L1 in cm over valid-depth pixels. The renders are 8-bit colour and millimetre depth PNGs, so PSNR differs from the run's
 (float) figure by up to a few hundredths of a dB and depth L1 by up to ~0.05 mm.
 
 Frames listed in ``metrics.json``'s ``per_frame`` with ``holdout: true`` are novel views: their
@@ -28,8 +28,8 @@ from sgad_jax.io.files import write_json, write_text
 from sgad_jax.io.rundir import Run, read_render
 from sgad_jax.types import make_frame
 
-IMAGE_KEYS = ("psnr", "ssim", "ms_ssim", "depth_l1_cm")
-COMPARED = ("ate_rmse_cm", "ate_mean_cm", "rpe_rmse_cm", "rpe_rot_rmse_deg", "psnr", "ssim", "ms_ssim", "depth_l1_cm")
+IMAGE_KEYS = ("psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm")
+COMPARED = ("ate_rmse_cm", "ate_mean_cm", "rpe_rmse_cm", "rpe_rot_rmse_deg", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm")
 
 
 def select_frames(spec: str | None, n: int) -> list[int]:
@@ -133,6 +133,7 @@ def evaluate_run(
     rendered = set(run.render_frames()) | set(run.render_frames("nvs"))
     fresh = render_held_out(run, sorted(holdout & set(chosen)), scene_frames, layers) if rerender else {}
     per_frame = []
+    weights = image.load_lpips_weights() if (fresh or rendered) else None
     for i in chosen:
         if i in fresh:
             rgb, depth = np.clip(fresh[i].rgb, 0.0, 1.0), np.asarray(splat.surface_depth(fresh[i]))
@@ -145,7 +146,7 @@ def evaluate_run(
         target, target_depth, valid = (np.asarray(x) for x in (f.rgb, f.depth, f.valid))
         if rgb.shape != target.shape:
             raise DatasetError(f"{run.root / 'renders'}: render {i} is {rgb.shape[1]}x{rgb.shape[0]}, the dataset frame {target.shape[1]}x{target.shape[0]} (another downscale?)")
-        per_frame.append({"index": i, "holdout": i in holdout, **image.score_view(rgb, depth, target, target_depth, valid, protocol=protocol)})
+        per_frame.append({"index": i, "holdout": i in holdout, **image.score_view(rgb, depth, target, target_depth, valid, protocol=protocol, lpips_weights=weights)})
     result["rendered_frames"] = len(per_frame)
     if not per_frame:
         result["image_note"] = "no image metrics: no renders of the selected frames (run with --save-renders)"
@@ -177,7 +178,7 @@ def report(result: dict) -> str:
         "| metric | recomputed | in metrics.json |",
         "|---|---|---|",
     ]
-    for key in ("ate_rmse_cm", "ate_mean_cm", "rpe_rmse_cm", "rpe_rot_rmse_deg", "psnr", "ssim", "ms_ssim", "depth_l1_cm"):
+    for key in COMPARED:
         if key in result:
             lines.append(f"| {key} | {fmt(result[key])} | {fmt(rec.get(key))} |")
     for key in IMAGE_KEYS:
