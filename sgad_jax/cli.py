@@ -71,7 +71,8 @@ def _add_run_dir_commands(sub) -> None:
     v.add_argument("--frames", default=None, metavar="SEL", help="frames to score, as run indices: 'all' (default), 'A:B[:S]' (Python slice), or a comma list '0,5,9'")
     v.add_argument("--rerender", action="store_true", help="score the held-out views rendered again from the stored Gaussians (not their saved renders)")
     v.add_argument("--scene-frames", type=int, default=None, metavar="K", help="with --rerender: frames per view (default: the run's scene.frames)")
-    v.add_argument("--layers", type=int, default=None, metavar="L", help="with --rerender: depth layers per pixel (default: the run's scene.layers)")
+    v.add_argument("--composite", default=None, choices=("priority", "depth"), help="with --rerender: how a view's frames are composited (default: the run's scene.composite)")
+    v.add_argument("--layers", type=int, default=None, metavar="L", help="with --rerender and depth compositing: Gaussians per pixel slot (default: the run's scene.layers)")
     q = sub.add_parser("plots", help="draw a finished run's trajectory and per-frame plots (RUN_DIR/trajectory.png, RUN_DIR/plots/)")
     q.add_argument("run_dir", metavar="RUN_DIR", help="the --out folder of a finished run")
     q.add_argument("--compare", type=int, default=3, metavar="N", help="side-by-side render / ground truth / error images of N frames (default 3; needs renders/)")
@@ -115,11 +116,13 @@ def draw_plots(run_dir, compare: int = 3) -> int:
     return 0
 
 
-def evaluate(run_dir, psnr_protocol=None, frames=None, rerender=False, scene_frames=None, layers=None) -> int:
+def evaluate(run_dir, psnr_protocol=None, frames=None, rerender=False, scene_frames=None, layers=None, composite=None) -> int:
     from sgad_jax.eval.run_eval import evaluate_run
 
-    result = evaluate_run(run_dir, psnr_protocol=psnr_protocol, frames=frames, rerender=rerender, scene_frames=scene_frames, layers=layers)
-    keys = ("frames", "ate_rmse_cm", "ate_mean_cm", "rpe_rmse_cm", "psnr", "ssim", "depth_l1_cm", "novel_psnr", "novel_ssim", "novel_depth_l1_cm")
+    result = evaluate_run(
+        run_dir, psnr_protocol=psnr_protocol, frames=frames, rerender=rerender, scene_frames=scene_frames, layers=layers, composite=composite
+    )
+    keys = ("frames", "ate_rmse_cm", "ate_mean_cm", "rpe_rmse_cm", "psnr", "ssim", "lpips", "depth_l1_cm", "novel_psnr", "novel_ssim", "novel_lpips", "novel_depth_l1_cm")
     print(json.dumps({k: result[k] for k in keys if k in result}))
     print(f"wrote {run_dir}/eval.json and {run_dir}/report.md", file=sys.stderr)
     return 0
@@ -132,7 +135,7 @@ def _run_dir_command(args) -> int:
         if args.command == "plots":
             return draw_plots(args.run_dir, args.compare)
         if args.command == "eval":
-            return evaluate(args.run_dir, args.psnr_protocol, args.frames, args.rerender, args.scene_frames, args.layers)
+            return evaluate(args.run_dir, args.psnr_protocol, args.frames, args.rerender, args.scene_frames, args.layers, args.composite)
         return _mesh_or_view(args)
     except (ConfigError, DatasetError) as err:
         print(f"sgad-jax {args.command}: error: {err}", file=sys.stderr)

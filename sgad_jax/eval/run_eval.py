@@ -65,16 +65,16 @@ def _mean(xs):
     return float(np.mean(xs)) if xs else None
 
 
-def render_held_out(run: Run, indices: list[int], scene_frames: int | None = None, layers: int | None = None) -> dict:
+def render_held_out(run: Run, indices: list[int], scene_frames: int | None = None, layers: int | None = None, composite: str | None = None) -> dict:
     """Held-out views rendered again from the run's stored Gaussians by the scene renderer at
-    their estimated poses (``scene_frames`` and ``layers`` default to the run's ``scene`` config):
+    their estimated poses (``scene_frames``, ``layers`` and ``composite`` default to the run's ``scene`` config):
     ``{index: Render}``. Lets the renderer's settings be compared without mapping again."""
     import dataclasses
 
     from sgad_jax import scene
 
     cfg = run.config.scene
-    cfg = dataclasses.replace(cfg, frames=scene_frames or cfg.frames, layers=layers or cfg.layers)
+    cfg = dataclasses.replace(cfg, frames=scene_frames or cfg.frames, layers=layers or cfg.layers, composite=composite or cfg.composite)
     sc = scene.Scene(cfg, run.intrinsics, run.gaussians)
     mapped_at = run.mapping_poses()
     for i in run.gaussian_frames():
@@ -86,7 +86,7 @@ def render_held_out(run: Run, indices: list[int], scene_frames: int | None = Non
 
 def evaluate_run(
     run_dir, *, psnr_protocol: str | None = None, frames: str | None = None, write: bool = True,
-    rerender: bool = False, scene_frames: int | None = None, layers: int | None = None,
+    rerender: bool = False, scene_frames: int | None = None, layers: int | None = None, composite: str | None = None,
 ) -> dict:
     """Recompute a finished run's metrics from its files; see the module docstring.
 
@@ -96,7 +96,7 @@ def evaluate_run(
         frames: frame selection (:func:`select_frames`); trajectory metrics use the same frames.
         write: write ``eval.json`` and ``report.md`` into the run folder.
         rerender: score the held-out views rendered again from the stored Gaussians
-            (:func:`render_held_out`, with ``scene_frames`` and ``layers``) instead of their saved renders.
+            (:func:`render_held_out`, with ``scene_frames``, ``layers`` and ``composite``) instead of their saved renders.
 
     Returns:
         the contents of ``eval.json``.
@@ -131,7 +131,7 @@ def evaluate_run(
 
     holdout = {int(r["index"]) for r in run.per_frame if r.get("holdout")}
     rendered = set(run.render_frames()) | set(run.render_frames("nvs"))
-    fresh = render_held_out(run, sorted(holdout & set(chosen)), scene_frames, layers) if rerender else {}
+    fresh = render_held_out(run, sorted(holdout & set(chosen)), scene_frames, layers, composite) if rerender else {}
     per_frame = []
     weights = image.load_lpips_weights() if (fresh or rendered) else None
     for i in chosen:
