@@ -134,6 +134,9 @@ class MapConfig:
 
     iterations: int = 100
     neighbours: int = 2
+    # Map every K-th tracked frame (keyframes; neighbours are counted among them); the frames between
+    # are rendered from the scene and scored with the rest (docs/method.md, "Keyframes")
+    every: int = 1
     current_view_fraction: float = 0.7  # paper: at least 0.4; see docs/method.md (neighbour views pull the own view down)
     lr_rgb: float = 0.0025
     lr_radius: float = 0.005
@@ -164,6 +167,8 @@ class MapConfig:
                 raise ConfigError(f"map.{name}: choose {' or '.join(allowed)}, got {getattr(self, name)!r}")
         if self.batch < 0:
             raise ConfigError(f"map.batch: frames mapped together, >= 1 (0: one per device); got {self.batch}")
+        if self.every < 1:
+            raise ConfigError(f"map.every: map every K-th frame, K >= 1; got {self.every}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -211,12 +211,13 @@ class _Mapper:
             self._score(index, frame, rgb, depth)
         self.pending = []
 
-    def _score(self, index: int, frame: Frame, rgb: np.ndarray, depth: np.ndarray, *, kind: str = "") -> dict:
-        """Score a render; ``kind`` "" (a training view, kept in ``per_frame``), "nvs" (held out)
-        or "test" (a dataset's test view): its renders are written as ``{kind}_rgb_XXXXXX.png``."""
+    def _score(self, index: int, frame: Frame, rgb: np.ndarray, depth: np.ndarray, *, kind: str = "", mapped: bool = True) -> dict:
+        """Score a render; ``kind`` "" (a frame of the run, kept in ``per_frame``: ``mapped``, or
+        between keyframes and rendered from the scene), "nvs" (held out) or "test" (a dataset's
+        test view): its renders are written as ``{kind}_rgb_XXXXXX.png``."""
         rgb = np.clip(rgb, 0.0, 1.0)
         scores = image.score_view(rgb, depth, frame.rgb, frame.depth, frame.valid, protocol=self.cfg.map.psnr_protocol, lpips_weights=self.lpips_weights)
-        rec = {"index": index, "holdout": kind != "", **scores}
+        rec = {"index": index, "holdout": kind != "", "mapped": mapped and not kind, **scores}
         if self.renders is not None:
             prefix = f"{kind}_" if kind else ""
             mm = np.clip(depth * 1000.0 + 0.5, 0, 65535).astype(np.uint16)
@@ -228,13 +229,15 @@ class _Mapper:
 
     # The scene: held-out views and the merged-map refinement.
     def score_views(self, indices: list[int], poses: np.ndarray, source, kind: str = "nvs") -> list[dict]:
-        """Render each view ``source(i)`` at camera-to-world ``poses[i]`` from the scene and score it."""
+        """Render each view ``source(i)`` at camera-to-world ``poses[i]`` from the scene and score it
+        (``kind`` as in :meth:`_score`; "": frames between keyframes)."""
         if not len(self.scene):
             return []
         recs = []
-        for index in tqdm(indices, desc=f"{kind} views", unit="view", disable=not self.main or len(indices) < 5, file=sys.stderr):
+        desc = f"{kind} views" if kind else "frames between keyframes"
+        for index in tqdm(indices, desc=desc, unit="view", disable=not self.main or len(indices) < 5, file=sys.stderr):
             out = self.scene.render(poses[index])
-            recs.append(self._score(index, host_frame(source(index)), out.rgb, np.asarray(splat.surface_depth(out)), kind=kind))
+            recs.append(self._score(index, host_frame(source(index)), out.rgb, np.asarray(splat.surface_depth(out)), kind=kind, mapped=False))
         return recs
 
     def finetune(self, iterations: int, poses: np.ndarray, source, seed: int) -> dict:
@@ -281,6 +284,7 @@ class _Mapper:
         out.update(
             psnr_protocol=self.cfg.map.psnr_protocol,
             mapped_frames=len(self.seconds),
+            map_every=self.cfg.map.every,
             map_s_per_frame=mean(self.seconds[self.batch.size :] or self.seconds),
             map_compile_s=self.compile_s,
             devices=self.batch.size,
@@ -289,6 +293,9 @@ class _Mapper:
             gaussians_on_devices=self.batch.size * (1 + self.n) * h * w,  # NUM2: each device's frame and its neighbours'
             gaussians_host_mb=self.store.memory_mb,
         )
+        between = [r for r in self.per_frame if not r.get("mapped", True)]
+        if between:  # map.every > 1: the frames rendered from the scene, also in the means above
+            out.update(_means(between, "between_"), between_frames=len(between))
         if self.lpips_missing:
             out["lpips_missing"] = self.lpips_missing
         return out
@@ -385,6 +392,7 @@ class SLAM:
         self.cfg, self.intr = cfg, intr
         self.holdout_every, self.source = holdout_every, source
         self.holdout: list[int] = []  # run indices of the held-out frames
+        self.between: list[int] = []  # frames between keyframes (map.every > 1) not yet rendered and scored
         self._held: dict[int, object] = {}  # their samples, when there is no source to read them again
         self.state = slam.init_state(cfg.track, initial_pose)
         self.pager = paging.Pager(cfg.track, np.asarray(self.state.geom.origin))
@@ -442,6 +450,10 @@ class SLAM:
             self.holdout.append(index)
             if self.source is None and self.mapper is not None:
                 self._held[index] = sample
+        elif self.mapper is not None and index % self.cfg.map.every:
+            self.between.append(index)
+            if self.source is None:
+                self._held[index] = sample
         elif self.mapper is not None:
             self.mapper.push(index, frame, pose)
         return pose
@@ -474,11 +486,15 @@ class SLAM:
         return pose
 
     def finish(self) -> dict:
-        """Map the queued frames; the run's metrics so far."""
+        """Map the queued frames, render and score the frames between keyframes from the scene; the
+        run's metrics so far."""
         if self.mapper is not None:
             self.mapper.flush()
             if not self.mapper.store.temporary:
                 self.mapper.store.flush()
+            if self.between:
+                self.mapper.score_views(self.between, self.trajectory(), self.source or self._held.__getitem__, kind="")
+                self.between = []
         steady = self.times[1:] if len(self.times) > 1 else self.times
         metrics = {
             "track_ms_median": 1000 * float(np.median(steady)) if steady else None,
@@ -540,7 +556,7 @@ class SLAM:
         )
         if self.pager.host_entries:  # orbax does not save empty arrays
             arrays["geometry_archive"] = self.pager.archive
-        meta = {"frames": len(self.poses), "times": self.times, "iters": self.iters, "holdout": self.holdout, "pages": self.pager.events, "dropped": self.dropped, "tracking_failures": self.failures}
+        meta = {"frames": len(self.poses), "times": self.times, "iters": self.iters, "holdout": self.holdout, "between": self.between, "pages": self.pager.events, "dropped": self.dropped, "tracking_failures": self.failures}
         if self.mapper is not None:
             more, meta["mapper"] = self.mapper.state()
             arrays.update(more)
@@ -552,6 +568,7 @@ class SLAM:
         self.stamps = [float(t) for t in arrays["stamps"]]
         self.depth_stamps = [float(t) for t in arrays["depth_stamps"]]
         self.times, self.iters, self.holdout = list(meta["times"]), list(meta["iters"]), list(meta["holdout"])
+        self.between = list(meta.get("between", []))
         self.pager.archive = np.asarray(arrays.get("geometry_archive", np.zeros((12, 0))), np.float32).reshape(12, -1)
         self.pager.events, self.dropped = list(meta.get("pages", [])), dict(meta.get("dropped", self.dropped))
         self.failures = list(meta.get("tracking_failures", []))
@@ -661,6 +678,7 @@ def run(
 
     stopped = None
     rss_trace = []
+    t_run = time.perf_counter()
     what = "tracking" if track_only else "tracking + mapping"
     bar = tqdm(total=len(ds), initial=start, desc=f"{what} {ds.name}", unit="frame", disable=not (progress and main), file=sys.stderr)
     try:
@@ -696,6 +714,10 @@ def run(
 
     metrics = {"frames": len(system), "dataset": ds.name, "layout": ds.layout}
     run_metrics = system.finish()
+    # Every input frame tracked, mapped or rendered from the scene, and scored; compilation apart.
+    compiled = (run_metrics.get("compile_s") or 0.0) + (run_metrics.get("map_compile_s") or 0.0)
+    if len(system) > start:
+        run_metrics["s_per_input_frame"] = (time.perf_counter() - t_run - compiled) / (len(system) - start)
     if not stopped:
         run_metrics.update(system.judge_scene(finetune))
     poses_np = system.trajectory()

@@ -292,3 +292,26 @@ def test_scannetpp_test_views_are_scored_from_the_scene(tmp_path):
     assert m["frames"] == 6 and m["test_frames"] == 2 and len(m["test_per_frame"]) == 2
     assert 18.0 < m["test_psnr"] < m["psnr"]
     assert (out / "renders" / "test_rgb_000000.png").is_file() and (out / "renders" / "test_rgb_000001.png").is_file()
+
+
+@pytest.mark.slow
+def test_keyframes_map_every_third_frame_and_score_the_rest(tmp_path):
+    """`map.every=3` with `--holdout-every 4` on 9 synthetic frames: frames 0, 3, 6 are mapped
+    (Gaussians stored), 4 and 8 are held out, and 1, 2, 5, 7 are rendered from the scene and scored
+    with the mapped ones (renders under the training names, `mapped: false`)."""
+    out = tmp_path / "keyframes"
+    args = ["run", "--quiet", "--out", str(out), "--holdout-every", "4", "--save-renders", "--checkpoint-every", "0"]
+    for kv in ("data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=9", "map.iterations=3", "scene.frames=3", "map.every=3"):
+        args += ["--set", kv]
+    assert main(args) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["mapped_frames"] == 3 and m["between_frames"] == 4 and m["nvs_frames"] == 2 and m["map_every"] == 3
+    assert sorted(p.name for p in (out / "gaussians").glob("*.npz")) == [f"frame_{i:06d}.npz" for i in (0, 3, 6)]
+    frames = {r["index"]: r for r in m["per_frame"] if not r["holdout"]}
+    assert sorted(frames) == [0, 1, 2, 3, 5, 6, 7]
+    assert [i for i in sorted(frames) if frames[i]["mapped"]] == [0, 3, 6]
+    for i in frames:
+        assert (out / "renders" / f"rgb_{i:06d}.png").is_file()
+    assert m["psnr"] == pytest.approx(np.mean([r["psnr"] for r in frames.values()]))
+    assert m["between_psnr"] == pytest.approx(np.mean([frames[i]["psnr"] for i in (1, 2, 5, 7)]))
+    assert m["s_per_input_frame"] > 0
