@@ -9,7 +9,6 @@ front to back with a cumulative product. Memory is O(pixels x Gaussians): small 
 from __future__ import annotations
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
 
 from sgad_jax import lie
 from sgad_jax.splat import DILATION, MAX_ALPHA, NEAR, RADIUS_SIGMAS, Render

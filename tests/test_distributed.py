@@ -1,7 +1,6 @@
 """Mapping across devices and processes, the Gaussian store, checkpoints and resume, streaming."""
 
 import json
-import os
 import pathlib
 import signal
 import socket
@@ -9,13 +8,11 @@ import subprocess
 import sys
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from sgad_jax import lie, slam, splat
 from sgad_jax.cli import resolve_config
-from sgad_jax.config import MapConfig
 from sgad_jax.distributed import BatchMapper
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import read_tum_trajectory
