@@ -177,13 +177,13 @@ class SceneConfig:
 
     frames: int = 8  # k: mapped frames whose Gaussians render a view (those that best cover it)
     # priority: each frame's render over the farther frames' (occluders excepted); depth: all
-    # Gaussians merged in depth order (docs/method.md, "The scene")
+    # Gaussians merged in depth order (docs/method.md, "The scene and held-out views")
     composite: str = "priority"
     layers: int = 4  # with composite=depth: nearest Gaussians kept per pixel slot
     finetune_lr_scale: float = 1.0  # learning rates of the merged-map refinement, times the mapping ones
-    # Offsets move in the refinement too. Off by default: in a merged, depth-sorted render the depth
-    # loss reaches only the front-most Gaussian, and pushing it back ratchets whole surfaces
-    # backwards (docs/method.md).
+    # Offsets move in the refinement too. Off by default: with depth compositing the depth loss
+    # reached only the front-most Gaussian, and pushing it back ratcheted whole surfaces backwards
+    # (docs/method.md); mapping already found no held-out gain in learned offsets.
     finetune_offsets: bool = False
 
     def __post_init__(self):

@@ -7,7 +7,7 @@ fixed shapes) renders each frame's Gaussians into the view and composites the fr
 that order, each over the later ones, except where a later frame's surface lies in front by more
 than :data:`OCCLUSION_TOLERANCE` of the depth: each frame's Gaussians are a fit of its own view,
 so the nearest fit is shown whole instead of interleaving several by depth (docs/method.md,
-"The scene"). ``composite="depth"`` merges all frames in depth order instead.
+"The scene and held-out views"). ``composite="depth"`` merges all frames in depth order instead.
 
 :func:`finetune_step` is one Adam step of the merged-map refinement (the paper fine-tunes the merged
 map before judging novel views): a training view rendered from its ``k`` frames, whose Gaussians
