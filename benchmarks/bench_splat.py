@@ -11,8 +11,8 @@ compile time:
 * the same three frames composed as the pipeline renders a frame's view (``render_frame``: the
   current frame's Gaussians by the own-pose path over its 2 neighbours', binned in one layer),
   forward + backward with respect to all three frames' Gaussians;
-* the scene renderer (``render_scene``): 8 frames' Gaussians (the three read, repeated) into one
-  640x480 view, 4 layers, forward;
+* the scene renderer (``render_scene``, priority compositing): 8 frames' Gaussians (the three
+  read, repeated) into one 640x480 view, forward;
 * one full ``map_frame`` (``--iterations``, default 100) at 640x480 and 320x240 with 2 neighbour views.
 
 Usage::

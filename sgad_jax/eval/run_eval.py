@@ -133,7 +133,10 @@ def evaluate_run(
     rendered = set(run.render_frames()) | set(run.render_frames("nvs"))
     fresh = render_held_out(run, sorted(holdout & set(chosen)), scene_frames, layers, composite) if rerender else {}
     per_frame = []
-    weights = image.load_lpips_weights() if (fresh or rendered) else None
+    try:  # LPIPS only where its weights are installed and intact, as in the run
+        weights = image.load_lpips_weights() if (fresh or rendered) else None
+    except image.LPIPSUnavailable:
+        weights = None
     for i in chosen:
         if i in fresh:
             rgb, depth = np.clip(fresh[i].rgb, 0.0, 1.0), np.asarray(splat.surface_depth(fresh[i]))
