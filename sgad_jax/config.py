@@ -147,6 +147,9 @@ class MapConfig:
     weight_depth: float = 1.0
     learn_offset: bool = True  # False: Gaussians stay at the measured depth (the paper's ablation)
     offset_at_invalid: bool = False  # True: also learn the offsets of Gaussians where depth was not measured (see docs/method.md)
+    # An offset corrects the measured depth within the sensor's error: |offset| <= offset_bound * D^2
+    # (metres; 1.425e-3 is the Kinect's depth std per m^2, Khoshelham and Elberink 2012); 0: unbounded
+    offset_bound: float = 1.425e-3
     # Frames mapped together: within a batch, not-yet-mapped neighbours contribute their initial
     # Gaussians; 0: one frame per mapping device (1 on one device: strictly sequential, as the paper).
     batch: int = 0
@@ -165,6 +168,8 @@ class MapConfig:
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"map.{name}: choose {' or '.join(allowed)}, got {getattr(self, name)!r}")
+        if self.offset_bound < 0:
+            raise ConfigError(f"map.offset_bound: metres per m^2 of depth, >= 0 (0: unbounded); got {self.offset_bound}")
         if self.batch < 0:
             raise ConfigError(f"map.batch: frames mapped together, >= 1 (0: one per device); got {self.batch}")
         if self.every < 1:

@@ -101,6 +101,15 @@ def optimizer(cfg: MapConfig) -> optax.GradientTransformation:
     )
 
 
+def bound_offsets(cfg: MapConfig, g: PixelGaussians) -> PixelGaussians:
+    """Project the offsets onto ``|offset| <= cfg.offset_bound * depth^2`` (the sensor's depth error;
+    beyond it a Gaussian no longer sits on the surface its pixel measured)."""
+    if cfg.offset_bound <= 0:
+        return g
+    b = cfg.offset_bound * jnp.square(g.depth)
+    return dataclasses.replace(g, offset=jnp.clip(g.offset, -b, b))
+
+
 def _one(tree):
     """A single frame's pytree as a stack of one (what :func:`sgad_jax.splat.render` takes)."""
     return jax.tree.map(lambda x: x[None], tree)
@@ -191,7 +200,7 @@ def map_frame(
         if not cfg.offset_at_invalid:
             grad = dataclasses.replace(grad, offset=grad.offset * views.valid[0])
         updates, new_state = opt.update(grad, state, g)
-        new = (optax.apply_updates(g, updates), new_state)
+        new = (bound_offsets(cfg, optax.apply_updates(g, updates)), new_state)
         return jax.tree.map(lambda a, b: jnp.where(present[k], a, b), new, (g, state)), (loss, jnp.where(present[k], k, -1))
 
     # The optimiser state is selected by `present` in each step: make it vary like `present` from

@@ -25,6 +25,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from sgad_jax import lie, losses, splat
+from sgad_jax import map as mapping
 from sgad_jax.config import MapConfig, SceneConfig
 from sgad_jax.types import Intrinsics, PixelGaussians
 
@@ -285,6 +286,8 @@ def finetune_step(
         return jnp.where(keep, p - step, p)
 
     new = jax.tree.map(update, gs, mu, nu, lr)
+    if offsets:
+        new = mapping.bound_offsets(cfg, new)
     keep = lambda a, b: jnp.where(present.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
     state = AdamState(mu=jax.tree.map(keep, mu, state.mu), nu=jax.tree.map(keep, nu, state.nu), count=count)
     return new, state, loss
