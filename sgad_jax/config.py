@@ -142,6 +142,7 @@ class MapConfig:
     lr_radius: float = 0.005
     lr_opacity: float = 0.05
     lr_offset: float = 0.01
+    lr_offset_final: float = 0.0001  # the offset's rate decays to this over a frame's iterations (3DGS's positions: 1/100)
     weight_l1: float = 0.8
     weight_ssim: float = 0.2
     weight_depth: float = 1.0
@@ -168,6 +169,8 @@ class MapConfig:
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"map.{name}: choose {' or '.join(allowed)}, got {getattr(self, name)!r}")
+        if not 0 < self.lr_offset_final <= self.lr_offset:
+            raise ConfigError(f"map.lr_offset_final must lie in (0, map.lr_offset]; got {self.lr_offset_final}")
         if self.offset_bound < 0:
             raise ConfigError(f"map.offset_bound: metres per m^2 of depth, >= 0 (0: unbounded); got {self.offset_bound}")
         if self.batch < 0:

@@ -86,6 +86,15 @@ def view_schedule(cfg: MapConfig, views: int) -> np.ndarray:
     return np.asarray(out, np.int32)
 
 
+def offset_rate(cfg: MapConfig) -> optax.Schedule | float:
+    """The offset's learning rate: from ``lr_offset`` down to ``lr_offset_final`` log-linearly over
+    the frame's iterations, as 3DGS decays its positions' rate, so the offsets settle at the end
+    instead of ending wherever Adam's last steps of about ``lr_offset`` left them."""
+    if cfg.lr_offset_final == cfg.lr_offset:
+        return cfg.lr_offset
+    return optax.exponential_decay(cfg.lr_offset, transition_steps=cfg.iterations, decay_rate=cfg.lr_offset_final / cfg.lr_offset)
+
+
 def optimizer(cfg: MapConfig) -> optax.GradientTransformation:
     """Adam with the paper's per-attribute learning rates (depth frozen; offset too if disabled)."""
     labels = PixelGaussians(rgb="rgb", log_radius="radius", opacity_logit="opacity", offset="offset", depth="frozen")
@@ -94,7 +103,7 @@ def optimizer(cfg: MapConfig) -> optax.GradientTransformation:
             "rgb": optax.adam(cfg.lr_rgb),
             "radius": optax.adam(cfg.lr_radius),
             "opacity": optax.adam(cfg.lr_opacity),
-            "offset": optax.adam(cfg.lr_offset) if cfg.learn_offset else optax.set_to_zero(),
+            "offset": optax.adam(offset_rate(cfg)) if cfg.learn_offset else optax.set_to_zero(),
             "frozen": optax.set_to_zero(),
         },
         labels,

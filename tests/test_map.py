@@ -94,6 +94,23 @@ def test_offsets_without_measured_depth(room, at_invalid):
 
 
 @pytest.mark.slow
+def test_offsets_stay_within_the_sensor_bound(room):
+    """Each Adam step is projected onto ``|offset| <= offset_bound * D^2``: with a bound small enough
+    that unbounded offsets pass it (0.2 mm per m^2), every offset ends inside it, many at its edge."""
+    intr, frames, poses = room
+    views = _views(frames, poses, [1, 0, 2])
+    g0 = mapping.init_gaussians(frames[1], intr)
+    fit = jax.jit(mapping.map_frame, static_argnums=0)
+    free, _ = fit(MapConfig(iterations=20, offset_bound=0.0), g0, poses[1], views, intr)
+    bounded, _ = fit(MapConfig(iterations=20, offset_bound=2e-4), g0, poses[1], views, intr)
+    limit = 2e-4 * np.asarray(g0.depth, np.float64) ** 2
+    assert (np.abs(np.asarray(free.offset)) > limit).mean() > 0.1
+    off = np.abs(np.asarray(bounded.offset))
+    assert np.all(off <= limit * (1 + 1e-5))
+    assert (off >= limit * (1 - 1e-5)).mean() > 0.1
+
+
+@pytest.mark.slow
 def test_missing_neighbours_iterations_change_nothing(room):
     """A frame without neighbours (the first of a run) ends as if mapped on its own view alone for
     its own-view share of the iterations."""
