@@ -11,7 +11,8 @@ Public API (pure functions over pytrees; see README.md):
   any view), :func:`render_scene` (the scene at any pose from its best-covering frames, chosen by
   :func:`select_frames`; :class:`Scene` on the host), :func:`init_gaussians`, :func:`map_frame`, :func:`refine_pose` (rendering-based pose
   initialisation)
-* SLAM steps: :class:`SLAMState`, :func:`init_state`, :func:`track_step`, :func:`map_step`
+* SLAM steps: :class:`RunState` (the whole state of a run: :class:`SLAMState` of tracking and the
+  :class:`Recent` frames of mapping), :func:`init_state`, :func:`track_step`, :func:`remember`, :func:`map_step`
 * configuration: :class:`SLAMConfig` and its stage configs, :func:`load_preset`
 * a finished run's folder: :mod:`sgad_jax.io.ply` (3DGS export), :mod:`sgad_jax.eval.run_eval`,
   :mod:`sgad_jax.io.plots`, :mod:`sgad_jax.viewer`
@@ -23,7 +24,7 @@ from sgad_jax.config import DataConfig, ExportConfig, MapConfig, MeshConfig, SLA
 from sgad_jax.geometry import insert
 from sgad_jax.gicp import frame_points
 from sgad_jax.map import MapInfo, Views, init_gaussians, map_frame, refine_pose
-from sgad_jax.slam import SLAMState, init_state, map_step, track_step
+from sgad_jax.slam import Recent, RunState, SLAMState, empty_recent, init_state, map_step, remember, track_step
 from sgad_jax.scene import Scene, render_scene, select_frames
 from sgad_jax.splat import Render, render, render_own
 from sgad_jax.track import cost as track_cost
@@ -59,7 +60,7 @@ def run(cfg: SLAMConfig, out_dir=None, **kwargs):
 __version__ = "0.1.0"
 __all__ = [
     "DataConfig", "ExportConfig", "MapConfig", "MeshConfig", "SLAMConfig", "SyntheticConfig", "TrackConfig", "load_preset",
-    "insert", "frame_points", "SLAMState", "init_state", "track_step", "track_cost", "track", "relocalise",
+    "insert", "frame_points", "RunState", "Recent", "SLAMState", "empty_recent", "remember", "init_state", "track_step", "track_cost", "track", "relocalise",
     "transform_cloud", "Frame", "GeometrySet", "InsertInfo", "Intrinsics", "PixelGaussians",
     "PointCloud", "TrackInfo", "empty_geometry", "make_frame", "make_intrinsics", "open_dataset", "run",
     "MapInfo", "Views", "init_gaussians", "map_frame", "refine_pose", "map_step", "Render", "render", "render_own",

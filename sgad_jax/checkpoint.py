@@ -1,7 +1,8 @@
 """Checkpoints of a run with orbax: everything needed to continue it.
 
 A checkpoint is an orbax step folder under ``OUT/checkpoints/`` holding ``arrays`` (a flat dict of
-arrays: the tracking state, the trajectory so far, the mapper's recent frames) and ``meta`` (JSON:
+arrays: the run state pytree :class:`sgad_jax.slam.RunState`, the trajectory so far, the mapped
+frames' footprints) and ``meta`` (JSON:
 the config, the dataset's identity, the position, per-frame scores). Orbax writes a step to a
 temporary folder and renames it when complete, so a run killed at any moment (SIGKILL included)
 leaves the previous complete checkpoint to resume from.
@@ -49,11 +50,12 @@ def flatten(prefix: str, tree) -> dict[str, np.ndarray]:
 def unflatten(prefix: str, arrays: dict[str, np.ndarray], like):
     """The tree with the structure of ``like`` from the leaves :func:`flatten` wrote."""
     leaves, treedef = jax.tree.flatten(like)
-    got = [arrays[f"{prefix}/{i:03d}"] for i in range(len(leaves))]
-    for g, ref in zip(got, leaves):
-        if np.shape(g) != np.shape(ref):
-            raise ConfigError(
-                f"checkpoint {prefix} does not fit this run (shape {np.shape(g)} vs {np.shape(ref)}): made with other settings"
-                " or by another sgad_jax version; rerun without --resume or with a new --out"
-            )
+    keys = [f"{prefix}/{i:03d}" for i in range(len(leaves))]
+    stored = sorted(k for k in arrays if k.startswith(prefix + "/"))
+    if stored != keys or any(np.shape(arrays[k]) != np.shape(ref) for k, ref in zip(keys, leaves)):
+        raise ConfigError(
+            f"checkpoint {prefix} does not fit this run ({len(stored)} arrays, this run has {len(leaves)}, or their shapes differ):"
+            " made with other settings or by another sgad_jax version; rerun without --resume or with a new --out"
+        )
+    got = [arrays[k] for k in keys]
     return jax.tree.unflatten(treedef, [jax.numpy.asarray(g, dtype=np.asarray(r).dtype) for g, r in zip(got, leaves)])

@@ -27,6 +27,7 @@ import sys
 import time
 
 import jax
+import jax.numpy as jnp
 import cv2
 import numpy as np
 from tqdm import tqdm
@@ -120,8 +121,6 @@ class _Mapper:
         self.store = GaussianStore(None if out is None else out / "gaussians", cfg.map.host_budget_mb)
         self.batch = BatchMapper(cfg.map, intr, mesh)
         self.batch_size = cfg.map.batch or self.batch.size
-        self.recent: list[tuple[int, Frame, np.ndarray]] = []  # (index, frame, pose 4x4) of the last n mapped frames, newest first
-        self.pending: list[tuple] = []  # (index, frame, pose, neighbours) tracked, not yet mapped
         self.scene = scene.Scene(cfg.scene, intr, self.store.get)  # the mapped frames, for rendering any view
         self.refine = None
         self.compile_s = 0.0
@@ -142,13 +141,16 @@ class _Mapper:
         if self.lpips_missing and self.main:
             print(f"warning: LPIPS not computed: {self.lpips_missing}", file=sys.stderr)
 
-    def refine_guess(self, frame: Frame, guess):
+    def empty_recent(self) -> slam.Recent:
+        """The run state's recent frames: room for a batch and its frames' neighbours."""
+        return slam.empty_recent(self.batch_size + self.n, self.intr.height, self.intr.width)
+
+    def refine_guess(self, recent: slam.Recent, frame: Frame, guess):
         """Rendering-based initialisation of the pose guess from the previous frame's Gaussians as
         initialised from its RGB-D (so tracking never waits for mapping)."""
-        if not self.recent:
+        if int(recent.index[0]) < 0:
             return guess
-        _, prev, pose_prev = self.recent[0]
-        args = (prev, lie.from_matrix(pose_prev), frame, guess)
+        args = (jax.tree.map(lambda x: x[0], recent.frame), jax.tree.map(lambda x: x[0], recent.pose), frame, guess)
         if self.refine is None:
             t0 = time.perf_counter()
             cfg, intr, its = self.cfg.map, self.intr, self.cfg.map.render_init_iterations
@@ -161,12 +163,10 @@ class _Mapper:
             self.compile_s += time.perf_counter() - t0
         return self.refine(*args)
 
-    def push(self, index: int, frame: Frame, pose: np.ndarray) -> None:
+    def push(self, recent: slam.Recent, index: int, frame: Frame, pose: lie.SE3) -> slam.Recent:
         """Queue a tracked frame; map the queue when it fills a batch."""
-        self.pending.append((index, frame, pose, list(self.recent)))
-        self.recent = [(index, frame, pose)] + self.recent[: self.n - 1]
-        if len(self.pending) == self.batch_size:
-            self.flush()
+        recent = slam.remember(recent, frame, pose, index)
+        return self.flush(recent) if int(recent.queued) == self.batch_size else recent
 
     def _neighbour_gaussians(self, index: int, frame: Frame) -> PixelGaussians:
         """A neighbour's fixed Gaussians: its learned ones once mapped (paper Eq. 1), else initial.
@@ -175,22 +175,28 @@ class _Mapper:
             return self.store.get(index)
         return jax.tree.map(np.asarray, mapping.init_gaussians(frame, self.intr, radius_init=self.cfg.map.radius_init))
 
-    def flush(self) -> None:
+    def flush(self, recent: slam.Recent) -> slam.Recent:
         """Map every queued frame: the batch's neighbours are fixed first (frames of the same batch
         contribute their initial Gaussians), then it runs in chunks of one frame per device (the
-        last chunk padded by repeating its last frame), so results do not depend on the devices."""
-        if not self.pending:
-            return
+        last chunk padded by repeating its last frame), so results do not depend on the devices.
+        Returns ``recent`` with an empty queue."""
+        queued = int(recent.queued)
+        if not queued:
+            return recent
         stack = lambda *xs: np.stack(xs)  # noqa: E731
-        rows = []
-        for _, frame, pose, have in self.pending:
+        host = jax.tree.map(np.asarray, recent)
+        entry = lambda k: (int(host.index[k]), jax.tree.map(lambda x: x[k], host.frame), jax.tree.map(lambda x: x[k], host.pose))  # noqa: E731
+        pending, rows = [entry(k) for k in reversed(range(queued))], []  # oldest first
+        for k in reversed(range(queued)):
+            _, frame, pose = entry(k)
+            have = [entry(j) for j in range(k + 1, k + 1 + self.n) if host.index[j] >= 0]  # its neighbours, newest first
             nb = have + [have[0] if have else (-1, frame, pose)] * (self.n - len(have))
             rows.append((
                 frame,
-                _pose(pose),
+                pose,
                 jax.tree.map(stack, *[self._neighbour_gaussians(i, f) for i, f, _ in nb]),
                 jax.tree.map(stack, *[f for _, f, _ in nb]),
-                jax.tree.map(stack, *[_pose(p) for _, _, p in nb]),
+                jax.tree.map(stack, *[p for _, _, p in nb]),
                 np.asarray([True] * len(have) + [False] * (self.n - len(have))),
             ))
         size = self.batch.size
@@ -205,11 +211,12 @@ class _Mapper:
             real = min(size, len(rows) - c)
             self.seconds += [(time.perf_counter() - t0) / real] * real
             results += [(jax.tree.map(lambda x: x[j], gs), rgb[j], depth[j]) for j in range(real)]
-        for (index, frame, pose, _), (g, rgb, depth) in zip(self.pending, results):
+        for (index, frame, pose), (g, rgb, depth) in zip(pending, results):
+            pose = np.asarray(pose.as_matrix(), np.float64)
             self.store.put(index, g, pose)
             self.scene.add(index, pose, frame.depth, frame.valid)
             self._score(index, frame, rgb, depth)
-        self.pending = []
+        return dataclasses.replace(recent, queued=jnp.zeros((), jnp.int32))
 
     def _score(self, index: int, frame: Frame, rgb: np.ndarray, depth: np.ndarray, *, kind: str = "", mapped: bool = True) -> dict:
         """Score a render; ``kind`` "" (a frame of the run, kept in ``per_frame``: ``mapped``, or
@@ -245,8 +252,7 @@ class _Mapper:
         view rendered from its ``scene.frames`` best-covering frames, all of whose Gaussians move.
         Every mapped frame's Gaussians and Adam moments are held in host memory meanwhile; the
         refined Gaussians replace the stored ones. Returns the step count, the seconds it took and
-        the mean loss of its first and last 50 steps."""
-        self.flush()
+        the mean loss of its first and last 50 steps. (Call with the queue mapped.)"""
         mapped = sorted(self.scene.poses)
         if not mapped or iterations <= 0:
             return {}
@@ -300,24 +306,13 @@ class _Mapper:
             out["lpips_missing"] = self.lpips_missing
         return out
 
-    # Checkpoints: the recent frames as fixed-shape arrays, the rest as JSON.
+    # Checkpoints (the recent frames are in the run state): the mapped frames' record.
     def state(self) -> tuple[dict, dict]:
-        self.flush()
         self.store.flush()
-        h, w = self.intr.height, self.intr.width
-        recent = self.recent + [(-1, _blank_frame(h, w), np.eye(4))] * (self.n - len(self.recent))
-        arrays = checkpoint.flatten("recent_frames", jax.tree.map(lambda *x: np.stack(x), *[f for _, f, _ in recent]))
-        arrays["recent_poses"] = np.stack([p for _, _, p in recent])
-        mapped, more = self.scene.arrays()
-        arrays.update(more)
-        meta = {"recent": [i for i, _, _ in self.recent], "mapped": mapped, "per_frame": self.per_frame, "seconds": self.seconds}
-        return arrays, meta
+        mapped, arrays = self.scene.arrays()
+        return arrays, {"mapped": mapped, "per_frame": self.per_frame, "seconds": self.seconds}
 
     def restore(self, arrays: dict, meta: dict) -> None:
-        h, w = self.intr.height, self.intr.width
-        like = jax.tree.map(lambda *x: np.stack(x), *[_blank_frame(h, w)] * self.n)
-        frames = jax.tree.map(np.asarray, checkpoint.unflatten("recent_frames", arrays, like))
-        self.recent = [(i, jax.tree.map(lambda x: x[k], frames), arrays["recent_poses"][k]) for k, i in enumerate(meta["recent"])]
         self.scene.restore(meta["mapped"], arrays)
         self.per_frame = list(meta["per_frame"])
         self.seconds = list(meta["seconds"])
@@ -334,10 +329,6 @@ def _means(records: list[dict], prefix: str = "") -> dict:
 
 def _pose(T: np.ndarray) -> lie.SE3:
     return jax.tree.map(np.asarray, lie.from_matrix(T))
-
-
-def _blank_frame(h: int, w: int) -> Frame:
-    return Frame(rgb=np.zeros((h, w, 3), np.float32), depth=np.zeros((h, w), np.float32), depth_filled=np.zeros((h, w), np.float32), valid=np.zeros((h, w), bool))
 
 
 def failure_reason(cfg, info) -> str:
@@ -394,10 +385,11 @@ class SLAM:
         self.holdout: list[int] = []  # run indices of the held-out frames
         self.between: list[int] = []  # frames between keyframes (map.every > 1) not yet rendered and scored
         self._held: dict[int, object] = {}  # their samples, when there is no source to read them again
-        self.state = slam.init_state(cfg.track, initial_pose)
-        self.pager = paging.Pager(cfg.track, np.asarray(self.state.geom.origin))
         self.dropped = {"overflow": 0, "out_of_range": 0}  # points T could not take (InsertInfo)
         self.mapper = None if track_only else _Mapper(cfg, intr, None if out_dir is None else pathlib.Path(out_dir), save_renders, mesh)
+        # The whole state carried from frame to frame, one pytree (a checkpoint saves it as is).
+        self.state = slam.RunState(slam.init_state(cfg.track, initial_pose), None if self.mapper is None else self.mapper.empty_recent())
+        self.pager = paging.Pager(cfg.track, np.asarray(self.state.track.geom.origin))
         render_init = self.mapper is not None and cfg.map.render_init
         self._predict = jax.jit(slam.predict, static_argnums=0) if render_init else None
         self._step = None
@@ -455,8 +447,13 @@ class SLAM:
             if self.source is None:
                 self._held[index] = sample
         elif self.mapper is not None:
-            self.mapper.push(index, frame, pose)
+            self.state = dataclasses.replace(self.state, recent=self.mapper.push(self.state.recent, index, frame, lie.from_matrix(pose)))
         return pose
+
+    def _flush(self) -> None:
+        """Map the queued frames."""
+        if self.mapper is not None:
+            self.state = dataclasses.replace(self.state, recent=self.mapper.flush(self.state.recent))
 
     def _track(self, sample, frame) -> np.ndarray:
         # The host array as read: the compiled step takes it without jnp.asarray's extra copy.
@@ -464,13 +461,13 @@ class SLAM:
         dt = np.float32(sample.depth_timestamp - self.depth_stamps[-1] if self.depth_stamps else 0.0)
         guess = None
         if self._predict is not None:
-            guess = self.mapper.refine_guess(frame, self._predict(self.cfg.track, self.state, dt))
+            guess = self.mapper.refine_guess(self.state.recent, frame, self._predict(self.cfg.track, self.state.track, dt))
         if self._step is None:
             t0 = time.perf_counter()
-            self._step = compile_step(self.cfg.track, self.state, depth, self.intr, dt, guess)
+            self._step = compile_step(self.cfg.track, self.state.track, depth, self.intr, dt, guess)
             self.compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        state, T, info, ins = self._step(self.state, depth, self.intr, dt, guess)
+        state, T, info, ins = self._step(self.state.track, depth, self.intr, dt, guess)
         pose = np.asarray(T.as_matrix())
         if not np.isfinite(pose).all():
             raise TrackingDiverged("tracking diverged (non-finite pose)")
@@ -482,14 +479,14 @@ class SLAM:
         self.dropped["out_of_range"] += int(ins.out_of_range)
         if self.pager.due(state.geom, pose[:3, 3]):
             state = dataclasses.replace(state, geom=self.pager.page(state.geom, pose, len(self.poses)))
-        self.state = state
+        self.state = dataclasses.replace(self.state, track=state)
         return pose
 
     def finish(self) -> dict:
         """Map the queued frames, render and score the frames between keyframes from the scene; the
         run's metrics so far."""
         if self.mapper is not None:
-            self.mapper.flush()
+            self._flush()
             if not self.mapper.store.temporary:
                 self.mapper.store.flush()
             if self.between:
@@ -501,8 +498,8 @@ class SLAM:
             "track_iterations_mean": float(np.mean(self.iters)) if self.iters else None,
             "repeated_depth_frames": self.repeated,
             "tracking_failures": list(self.failures),
-            "geometry_gaussians": int(self.state.geom.count) + self.pager.host_entries,
-            "geometry_on_device": int(self.state.geom.count),
+            "geometry_gaussians": int(self.state.track.geom.count) + self.pager.host_entries,
+            "geometry_on_device": int(self.state.track.geom.count),
             "geometry_pages": self.pager.events,
             "geometry_dropped_points": dict(self.dropped),
             "compile_s": self.compile_s,
@@ -521,6 +518,7 @@ class SLAM:
             return {}
         if finetune > 0 and self.source is None:
             raise ConfigError("the merged-map refinement reads the training views again: give SLAM a source")
+        self._flush()
         source = self.source or self._held.__getitem__
         poses = self.trajectory()
         out: dict = {"nvs_frames": len(self.holdout)} if self.holdout_every else {}
@@ -548,6 +546,7 @@ class SLAM:
 
     def checkpoint_state(self) -> tuple[dict, dict]:
         """``(arrays, meta)``: everything needed to continue (queued frames are mapped first)."""
+        self._flush()
         arrays = checkpoint.flatten("state", self.state)
         arrays.update(
             poses=np.asarray(self.poses).reshape(-1, 4, 4),

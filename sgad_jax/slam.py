@@ -10,6 +10,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from sgad_jax import geometry, gicp, lie, splat
@@ -39,6 +40,48 @@ def init_state(cfg: TrackConfig, T_init: lie.SE3 | None = None) -> SLAMState:
     origin = T_init.translation()
     geom = empty_geometry(cfg.capacity, cfg.voxel_size, origin)
     return SLAMState(geom=geom, T_prev=T_init, velocity=jnp.zeros(6), inlier_share=jnp.zeros(()))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Recent:
+    """The frames mapping takes neighbours from, newest first, in fixed shapes: the frames queued for
+    the next mapping batch (the first ``queued``), then the last mapped ones. ``index`` is the run
+    index of each (-1: none yet)."""
+
+    frame: Frame  # (m, h, w)
+    pose: lie.SE3  # (m,) camera-to-world
+    index: Int[Array, "m"]
+    queued: Int[Array, ""]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class RunState:
+    """Everything a run carries from frame to frame: tracking's state (with the geometry set T) and
+    the recent frames of mapping (None when only tracking runs)."""
+
+    track: SLAMState
+    recent: Recent | None
+
+
+def empty_recent(size: int, height: int, width: int) -> Recent:
+    """Room for ``size`` frames (a mapping batch and its frames' neighbours), none yet."""
+    z = np.zeros((size, height, width), np.float32)
+    frame = Frame(rgb=np.zeros((size, height, width, 3), np.float32), depth=z, depth_filled=z, valid=z.astype(bool))
+    pose = lie.SE3(jnp.tile(lie.identity().wxyz_xyz, (size, 1)))
+    return Recent(frame=frame, pose=pose, index=jnp.full((size,), -1, jnp.int32), queued=jnp.zeros((), jnp.int32))
+
+
+def remember(recent: Recent, frame: Frame, pose: lie.SE3, index: Int[Array, ""]) -> Recent:
+    """Queue a tracked frame for mapping: it becomes the newest, the oldest is forgotten."""
+    push = lambda old, new: jnp.concatenate([jnp.asarray(new)[None], old[:-1]])  # noqa: E731
+    return Recent(
+        frame=jax.tree.map(push, recent.frame, frame),
+        pose=jax.tree.map(push, recent.pose, pose),
+        index=push(recent.index, jnp.asarray(index, jnp.int32)),
+        queued=jnp.minimum(recent.queued + 1, recent.index.shape[0]),
+    )
 
 
 def predict(cfg: TrackConfig, state: SLAMState, dt: Float[Array, ""]) -> lie.SE3:

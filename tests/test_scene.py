@@ -188,7 +188,8 @@ def test_select_frames_prefers_frames_seeing_the_view():
 
 def test_finetune_step_is_adam_on_the_present_frames():
     """One refinement step equals optax's Adam with the mapping's learning rates on the present
-    frames' Gaussians (measured depth fixed), and leaves a padding frame as it was."""
+    frames' Gaussians (measured depth fixed), and leaves a padding frame as it was; with the
+    offsets' bound, the step ends inside it."""
     intr = _intr(jnp.float32)
     gs = jax.tree.map(lambda x: x.astype(jnp.float32), _frames(2, 3))
     poses = lie.exp(jnp.asarray(np.random.default_rng(3).normal(0, 0.03, (2, 6)), jnp.float32))
@@ -198,8 +199,11 @@ def test_finetune_step_is_adam_on_the_present_frames():
     depth = jnp.asarray(rng.uniform(1, 3, (H, W)), jnp.float32)
     valid = jnp.ones((H, W), bool)
     view = lie.exp(jnp.zeros(6, jnp.float32))
-    cfg = MapConfig(offset_at_invalid=True)
+    cfg = MapConfig(offset_at_invalid=True, offset_bound=0.0)
     new, state, loss = scene.finetune_step(cfg, gs, scene.adam_init(gs), poses, present, rgb, depth, valid, view, intr, layers=6, offsets=True)
+    bounded, _, _ = scene.finetune_step(MapConfig(offset_at_invalid=True, offset_bound=1e-4), gs, scene.adam_init(gs), poses, present, rgb, depth, valid, view, intr, layers=6, offsets=True)
+    limit = 1e-4 * np.asarray(gs.depth[0], np.float64) ** 2
+    assert np.all(np.abs(np.asarray(bounded.offset[0])) <= limit * (1 + 1e-5)) and np.any(np.abs(np.asarray(new.offset[0])) > limit)
 
     def loss_fn(g):
         out = scene.render_scene(g, poses, view, intr, present, layers=6)

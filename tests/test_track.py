@@ -13,6 +13,7 @@ from sgad_jax import gicp, lie, pipeline, slam
 from sgad_jax.cli import resolve_config
 from sgad_jax.config import ConfigError, DataConfig, SyntheticConfig, TrackConfig
 from sgad_jax.io.synthetic import SyntheticDataset
+from sgad_jax.types import make_frame
 from sgad_jax.track import _stretch, cost, solve, track
 
 CFG = TrackConfig(stride=4, k=15, capacity=1 << 15, max_iterations=50, tolerance=1e-6)
@@ -224,23 +225,28 @@ def test_repeated_depth_image(scene, hold):
 
 
 @pytest.mark.slow
-def test_tracking_scans_over_a_sequence_like_the_host_loop(tmp_path):
-    """The tracking state is one pytree and the step is pure: `lax.scan` of `slam.track_step` over a
-    synthetic sequence's stacked depth images gives the host loop's (`run --track-only`) poses."""
-    cfg = resolve_config(None, None, overrides=["data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=6"])
-    result = pipeline.run(cfg, tmp_path / "run", track_only=True, progress=False)
+def test_run_state_scans_over_a_sequence_like_the_host_loop():
+    """The run state is one pytree and the step is pure: `lax.scan` of tracking and queueing each
+    frame for mapping (`slam.track_step`, `slam.remember`) over a synthetic sequence gives the host
+    loop's poses and leaves the same recent frames (`pipeline.SLAM`, mapping included)."""
+    cfg = resolve_config(None, None, overrides=["data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=6", "map.iterations=2"])
     ds = SyntheticDataset(cfg.data)
-    depths = jnp.stack([ds[i].depth for i in range(len(ds))])
+    system = pipeline.SLAM(cfg, ds.intrinsics, initial_pose=pipeline.initial_pose(ds))
+    host_poses = np.stack([system.add(ds[i]) for i in range(len(ds))])
+    frames = jax.tree.map(lambda *x: jnp.stack(x), *[make_frame(ds[i].rgb, ds[i].depth, ds[i].depth_filled) for i in range(len(ds))])
     dts = jnp.asarray(np.diff(ds.timestamps, prepend=ds.timestamps[0]), jnp.float32)
-    state = slam.init_state(cfg.track, lie.from_matrix(ds.gt_poses[0]))
+    state = slam.RunState(slam.init_state(cfg.track, lie.from_matrix(ds.gt_poses[0])), slam.empty_recent(3, 60, 80))
 
-    def step(state, frame):
-        depth, dt = frame
-        state, T, _, _ = slam.track_step(cfg.track, state, depth, ds.intrinsics, dt, differentiable=False)
-        return state, T.as_matrix()
+    def step(state, xs):
+        frame, dt, index = xs
+        track, T, _, _ = slam.track_step(cfg.track, state.track, frame.depth, ds.intrinsics, dt, differentiable=False)
+        return slam.RunState(track, slam.remember(state.recent, frame, T, index)), T.as_matrix()
 
-    _, poses = jax.jit(lambda s, d, t: jax.lax.scan(step, s, (d, t)))(state, depths, dts)
-    np.testing.assert_allclose(np.asarray(poses), result.poses, atol=1e-5)
+    final, poses = jax.jit(lambda s, xs: jax.lax.scan(step, s, xs))(state, (frames, dts, jnp.arange(len(ds))))
+    np.testing.assert_allclose(np.asarray(poses), host_poses, atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(final.recent.index), np.asarray(system.state.recent.index))
+    np.testing.assert_allclose(np.asarray(final.recent.pose.as_matrix()), np.asarray(system.state.recent.pose.as_matrix()), atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(final.recent.frame.rgb), np.asarray(system.state.recent.frame.rgb))
 
 
 # --- depth outliers (track.median_gate) -------------------------------------------------------
