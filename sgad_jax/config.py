@@ -151,7 +151,6 @@ class MapConfig:
     # An offset corrects the measured depth within the sensor's error: |offset| <= offset_bound * D^2
     # (metres; 1.425e-3 is the Kinect's depth std per m^2, Khoshelham and Elberink 2012); 0: unbounded
     offset_bound: float = 1.425e-3
-    offset_own_view: bool = True  # False: offsets learn from the neighbour views only (invisible in their own view but for the depth loss)
     # Frames mapped together: within a batch, not-yet-mapped neighbours contribute their initial
     # Gaussians; 0: one frame per mapping device (1 on one device: strictly sequential, as the paper).
     batch: int = 0

@@ -208,8 +208,6 @@ def map_frame(
         )
         if not cfg.offset_at_invalid:
             grad = dataclasses.replace(grad, offset=grad.offset * views.valid[0])
-        if not cfg.offset_own_view:
-            grad = dataclasses.replace(grad, offset=jnp.where(k == 0, 0.0, grad.offset))
         updates, new_state = opt.update(grad, state, g)
         new = (bound_offsets(cfg, optax.apply_updates(g, updates)), new_state)
         return jax.tree.map(lambda a, b: jnp.where(present[k], a, b), new, (g, state)), (loss, jnp.where(present[k], k, -1))
