@@ -187,8 +187,7 @@ class _Mapper:
         host = jax.tree.map(np.asarray, recent)
         entry = lambda k: (int(host.index[k]), jax.tree.map(lambda x: x[k], host.frame), jax.tree.map(lambda x: x[k], host.pose))  # noqa: E731
         pending, rows = [entry(k) for k in reversed(range(queued))], []  # oldest first
-        for k in reversed(range(queued)):
-            _, frame, pose = entry(k)
+        for k, (_, frame, pose) in zip(reversed(range(queued)), pending):
             have = [entry(j) for j in range(k + 1, k + 1 + self.n) if host.index[j] >= 0]  # its neighbours, newest first
             nb = have + [have[0] if have else (-1, frame, pose)] * (self.n - len(have))
             rows.append((
