@@ -457,18 +457,43 @@ def test_downscale(tmp_path):
     root = make_generic(tmp_path, n=1)
     yy, xx = np.mgrid[:H, :W]
     write_rgb(root / "rgb/0000.png", np.where(((yy + xx) % 2 == 0)[..., None], 200, 0) * np.ones(3))
-    depth = 1000 + yy * W + xx  # unique values, so an average would show
-    depth[(yy + 2 * xx) % 3 == 0] = 0  # scattered holes in every 2x2 block
+    depth = np.full((H, W), 2000)
+    depth[:, W // 2 + 1 :] = 3000  # a depth edge through the middle of the blocks of column W // 4
+    depth[:2, :4] = [[0, 2000, 0, 0], [2010, 0, 0, 0]]  # a block with two holes, a block with none valid
     write_depth(root / "depth/0000.png", depth)
     s = GenericDataset(root, cfg(root, downscale=2, inpaint=False))[0]
     assert s.rgb.shape == (H // 2, W // 2, 3) and s.depth.shape == (H // 2, W // 2)
     np.testing.assert_array_equal(s.rgb, 100)  # area average of the 0/200 checkerboard
-    blocks = depth.reshape(H // 2, 2, W // 2, 2).transpose(0, 2, 1, 3).reshape(H // 2, W // 2, 4) / 1000.0
-    assert all(s.depth[v, u] in blocks[v, u].astype(np.float32) for v in range(H // 2) for u in range(W // 2))
+    assert s.depth[0, 0] == pytest.approx(2.005) and s.depth[0, 1] == 0  # mean of the valid ones; none valid
+    np.testing.assert_array_equal(s.depth[:, W // 4], 2.0)  # across the edge: the nearer surface, nothing between
+    np.testing.assert_array_equal(s.depth[:, W // 4 + 1 :], 3.0)
     k = GenericDataset(root, cfg(root, downscale=2)).intrinsics
     # small pixel u covers full pixels 2u, 2u + 1: its centre 2u + 0.5 maps to u
     assert k.as_tuple() == pytest.approx((10.0, 10.5, (15.5 - 0.5) / 2, (11.5 - 0.5) / 2))
     assert (k.width, k.height) == (W // 2, H // 2)
+
+
+@pytest.mark.parametrize("factor", [2, 3])
+def test_downscaled_depth_of_a_slanted_plane_is_the_plane_at_the_scaled_pixel_centres(factor):
+    """Oracle: the plane's depth along the ray of each downscaled pixel, through the scaled intrinsics."""
+    from sgad_jax.io.base import downscale_rgbd
+    from sgad_jax.types import Intrinsics
+
+    full = Intrinsics(fx=300.0, fy=290.0, cx=47.5, cy=35.5, width=96, height=72)
+    n, d = np.array([0.3, -0.2, 1.0]), 2.0  # plane n . X = d, about 45 degrees to the rays at the edges
+
+    def plane_depth(k: Intrinsics) -> np.ndarray:
+        v, u = np.mgrid[: k.height, : k.width].astype(np.float64)
+        return d / (n[0] * (u - k.cx) / k.fx + n[1] * (v - k.cy) / k.fy + n[2])
+
+    rgb = np.zeros((full.height, full.width, 3), np.uint8)
+    _, small = downscale_rgbd(rgb, plane_depth(full), factor)
+    want = plane_depth(full.scaled(factor))
+    # the block mean differs from the centre's depth only at second order (1/z, not z, is linear)
+    np.testing.assert_allclose(small, want, rtol=2e-4)
+    if factor % 2 == 0:  # an even block has no centre pixel: any one of its pixels is half a pixel off
+        one_pixel = plane_depth(full)[factor // 2 :: factor, factor // 2 :: factor]
+        assert np.abs(one_pixel - want).max() > 10 * np.abs(small - want).max()
 
 
 def test_inpainting(tmp_path):
