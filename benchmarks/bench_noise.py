@@ -2,7 +2,7 @@
 
 Each noise level and seed reads the sequence with ``data.noise_share`` / ``data.noise_seed`` set
 (a share of each depth image's valid pixels plus N(0, ``data.noise_sigma``)), runs the host loop's
-tracking step (``pipeline.compile_step``, compiled once per config) over it with the repeated-depth
+tracking step (``system.compile_step``, compiled once per config) over it with the repeated-depth
 and timestamp rules of ``sgad-jax run``, and prints one JSON line per run: ``ours_ate_cm`` and,
 with ``--peer``, ``small_gicp_ate_cm`` (VGICP as in ``bench_track.py``).
 
@@ -40,7 +40,7 @@ def main() -> None:
     import jax.numpy as jnp
 
     from bench_track import _small_gicp_track, read_sequence
-    from sgad_jax import lie, pipeline, slam
+    from sgad_jax import lie, slam, system
     from sgad_jax.cli import resolve_config
     from sgad_jax.eval.ate import ate
 
@@ -52,10 +52,10 @@ def main() -> None:
             cfg = resolve_config(args.config, args.data or None, start=args.start, max_frames=args.max_frames, overrides=args.overrides + noise)
             ds, depths, repeated, depth_stamps, frame_stamps, dts = read_sequence(cfg)
             tcfg, intr = cfg.track, ds.intrinsics
-            T0 = pipeline.initial_pose(ds)
+            T0 = system.initial_pose(ds)
             T0_matrix = np.asarray(T0.as_matrix(), np.float64)  # before the state's buffers are donated
             if (tcfg, intr) not in steps:
-                steps[tcfg, intr] = pipeline.compile_step(tcfg, slam.init_state(tcfg, T0), jnp.asarray(depths[0]), intr, dts[0])
+                steps[tcfg, intr] = system.compile_step(tcfg, slam.init_state(tcfg, T0), jnp.asarray(depths[0]), intr, dts[0])
             step = steps[tcfg, intr]
             state, poses = slam.init_state(tcfg, T0), []
             for depth, dt, same in zip(depths, dts, repeated):

@@ -36,7 +36,7 @@ def worker(args) -> dict:
     from sgad_jax import lie
     from sgad_jax.config import DataConfig, MapConfig
     from sgad_jax.io.datasets import open_dataset
-    from sgad_jax.pipeline import host_frame
+    from sgad_jax.types import host_frame
 
     path = args.data if os.path.isdir(args.data) else ""
     n = args.worker

@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     import jax.numpy as jnp
 
     from sgad_jax import lie, scene, slam, splat
-    from sgad_jax import map as mapping
+    from sgad_jax import mapping
     from sgad_jax.config import DataConfig, MapConfig
     from sgad_jax.io.datasets import open_dataset
     from sgad_jax.types import make_frame

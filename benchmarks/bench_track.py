@@ -118,14 +118,14 @@ def read_sequence(cfg):
     """Every frame of ``cfg.data`` read first (timings exclude file I/O): the dataset, the depth
     images, which repeat the previous one, the depth and frame stamps, and the time since the
     previous depth image (a repeated one moves the clock on, as in ``SLAM.add``)."""
-    from sgad_jax import pipeline
+    from sgad_jax import system
     from sgad_jax.io.datasets import open_dataset
 
     ds = open_dataset(cfg.data)
     samples = [ds[i] for i in range(len(ds))]
     depths = [s.depth for s in samples]
     hold = cfg.track.hold_repeated_depth
-    repeated = [hold and pipeline.repeats(d, prev) for d, prev in zip(depths, [None, *depths[:-1]])]
+    repeated = [hold and system.repeats(d, prev) for d, prev in zip(depths, [None, *depths[:-1]])]
     depth_stamps = np.array([s.depth_timestamp for s in samples])
     frame_stamps = np.array([s.timestamp for s in samples])
     dts = np.diff(depth_stamps, prepend=depth_stamps[0]).astype(np.float32)
@@ -149,7 +149,7 @@ def main() -> None:
     import jax
     import jax.numpy as jnp
 
-    from sgad_jax import lie, pipeline, slam
+    from sgad_jax import lie, slam, system
     from sgad_jax.cli import resolve_config
     from sgad_jax.eval.ate import ate
 
@@ -164,11 +164,11 @@ def main() -> None:
     # machine's speed drifts within minutes). Poses and ATEs are the first round's (every
     # round computes the same).
     t0 = time.perf_counter()
-    step = pipeline.compile_step(tcfg, slam.init_state(tcfg, pipeline.initial_pose(ds)), jnp.asarray(depths[0]), intr, dts[0])
+    step = system.compile_step(tcfg, slam.init_state(tcfg, system.initial_pose(ds)), jnp.asarray(depths[0]), intr, dts[0])
     compile_s = time.perf_counter() - t0
 
     def run_ours():
-        state = slam.init_state(tcfg, pipeline.initial_pose(ds))
+        state = slam.init_state(tcfg, system.initial_pose(ds))
         poses, times, iters = [], [], []
         for depth, dt, same in zip(depths, dts, repeated):
             if same:
@@ -182,7 +182,7 @@ def main() -> None:
             iters.append(int(info.iterations))
         return np.stack(poses), times, iters, state, T
 
-    T0 = np.asarray(pipeline.initial_pose(ds).as_matrix(), np.float64)
+    T0 = np.asarray(system.initial_pose(ds).as_matrix(), np.float64)
     rounds = []
     for r in range(args.rounds):
         ours_r, ours_t, iters_r, state, T = run_ours()

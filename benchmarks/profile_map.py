@@ -57,9 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     import optax
 
     from sgad_jax import lie, losses, slam, splat
-    from sgad_jax import map as mapping
+    from sgad_jax import mapping
     from sgad_jax.config import DataConfig, MapConfig
-    from sgad_jax.eval import image
+    from sgad_jax.eval import image, lpips_weights
     from sgad_jax.io.datasets import open_dataset
     from sgad_jax.types import make_frame
 
@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # Host work after mapping a frame.
     rgb, target = np.clip(np.asarray(own.rgb), 0, 1), np.asarray(frame.rgb)
-    weights = image.load_lpips_weights()
+    weights = lpips_weights.load_lpips_weights()
     host = {
         "psnr": lambda: image.psnr(rgb, target, np.asarray(frame.valid)),
         "ssim": lambda: image.ssim(rgb, target),

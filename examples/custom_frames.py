@@ -1,6 +1,6 @@
 """A custom loop: feed your own RGB-D frames, without ground truth, to the streaming SLAM object.
 
-:class:`sgad_jax.pipeline.SLAM` takes frames one at a time (``add`` returns the frame's
+:class:`sgad_jax.system.SLAM` takes frames one at a time (``add`` returns the frame's
 camera-to-world pose at once; mapping follows in batches), ``finish`` maps what is queued and
 returns the metrics, ``trajectory`` the poses at the frames' timestamps. A frame is anything with
 ``rgb`` (h, w, 3) uint8, ``depth`` (h, w) float32 metres (0 where missing), ``depth_filled`` (depth
@@ -22,7 +22,7 @@ from sgad_jax import load_preset, open_dataset
 from sgad_jax.config import DataConfig, SyntheticConfig
 from sgad_jax.eval.ate import ate
 from sgad_jax.io.export import write_tum_trajectory
-from sgad_jax.pipeline import SLAM
+from sgad_jax.system import SLAM
 from sgad_jax.types import make_intrinsics
 
 

@@ -23,7 +23,7 @@ Public API (pure functions over pytrees; see README.md):
 from sgad_jax.config import DataConfig, ExportConfig, MapConfig, MeshConfig, SLAMConfig, SyntheticConfig, TrackConfig, load_preset
 from sgad_jax.geometry import insert
 from sgad_jax.gicp import frame_points
-from sgad_jax.map import MapInfo, Views, init_gaussians, map_frame, refine_pose
+from sgad_jax.mapping import MapInfo, Views, init_gaussians, map_frame, refine_pose
 from sgad_jax.slam import Recent, RunState, SLAMState, empty_recent, init_state, map_step, remember, track_step
 from sgad_jax.scene import Scene, render_scene, select_frames
 from sgad_jax.splat import Render, render, render_own

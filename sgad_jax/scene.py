@@ -25,7 +25,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from sgad_jax import lie, losses, splat
-from sgad_jax import map as mapping
+from sgad_jax import mapping
 from sgad_jax.config import MapConfig, SceneConfig
 from sgad_jax.types import Intrinsics, PixelGaussians
 

@@ -1,7 +1,7 @@
 """SGAD-SLAM steps composed from ``track`` (and, with the appearance branch, ``map_frame``).
 
-Pure functions over :class:`SLAMState`; the host loop (file reading, progress, outputs) lives in
-``sgad_jax.pipeline``.
+Pure functions over :class:`SLAMState`; the host side is :class:`sgad_jax.system.SLAM` (one frame at
+a time) and :func:`sgad_jax.pipeline.run` (a whole dataset: reading, progress, outputs).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from sgad_jax import geometry, gicp, lie, splat
-from sgad_jax import map as mapping
+from sgad_jax import mapping
 from sgad_jax.config import MapConfig, TrackConfig
 from sgad_jax.track import relocalise, solve, track, transform_cloud
 from sgad_jax.types import (
@@ -140,7 +140,7 @@ def track_step(
     Gaussians to T.
 
     The first frame meets an empty T and keeps its initial pose. The guess (unless given, e.g. by
-    :func:`sgad_jax.map.refine_pose`) is the constant-velocity
+    :func:`sgad_jax.mapping.refine_pose`) is the constant-velocity
     prediction ``T_prev exp(v dt)`` (or ``T_prev`` when ``cfg.constant_velocity`` is off), where
     ``dt`` is the time between this depth image and the previous one: velocity in time rather than
     per frame, because TUM's depth and colour streams are not synchronised and consecutive frames
@@ -221,7 +221,7 @@ def map_step(
     ``neighbours`` (frames, their Gaussians and poses) are stacked with a fixed count ``n``;
     ``present`` marks the real ones (the first frames of a run have fewer). The neighbours'
     Gaussians are fixed: their learned ones when they were mapped before (the paper), their initial
-    ones (:func:`sgad_jax.map.init_gaussians`) when they are mapped in the same batch; the caller
+    ones (:func:`sgad_jax.mapping.init_gaussians`) when they are mapped in the same batch; the caller
     chooses, so any set of tracked frames can be mapped at once (``vmap``, devices, hosts).
     With ``cfg.depth_fill == "render"`` the frame's missing depth is the neighbours' rendered depth
     where they cover the pixel (inpainted elsewhere). Returns the frame's Gaussians, its rendered

@@ -90,6 +90,11 @@ def make_frame(rgb, depth, depth_filled=None) -> Frame:
     )
 
 
+def host_frame(sample) -> Frame:
+    """The frame of a sample (``rgb``, ``depth``, ``depth_filled``) as host (numpy) arrays."""
+    return jax.tree.map(np.asarray, make_frame(sample.rgb, sample.depth, sample.depth_filled))
+
+
 @_pytree
 class PixelGaussians:
     """The pixel-aligned Gaussians of one frame (SGAD-SLAM, Sec. 3): one per pixel, on its ray.

@@ -17,8 +17,10 @@ from sgad_jax.distributed import BatchMapper
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import read_tum_trajectory
 from sgad_jax.io.store import GaussianStore
-from sgad_jax.map import init_gaussians
-from sgad_jax.pipeline import SLAM, host_frame, initial_pose, run
+from sgad_jax.mapping import init_gaussians
+from sgad_jax.pipeline import run
+from sgad_jax.system import SLAM, initial_pose
+from sgad_jax.types import host_frame
 from sgad_jax.types import PixelGaussians
 
 TINY = ["data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=8", "map.iterations=3", "map.batch=2"]

@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from sgad_jax import geometry, gicp, lie, slam
 from sgad_jax.config import DataConfig, SLAMConfig, SyntheticConfig, TrackConfig
 from sgad_jax.io.synthetic import SyntheticDataset, jump_pose
-from sgad_jax.pipeline import SLAM
+from sgad_jax.system import SLAM
 from sgad_jax.track import transform_cloud
 from sgad_jax.types import FAIL_DEGENERATE, FAIL_INLIERS, FAIL_JUMP, FAIL_NONFINITE, TrackInfo, empty_geometry
 

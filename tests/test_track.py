@@ -10,6 +10,7 @@ import pytest
 
 from conftest import shared
 from sgad_jax import gicp, lie, pipeline, slam
+from sgad_jax.system import SLAM, initial_pose
 from sgad_jax.cli import resolve_config
 from sgad_jax.config import ConfigError, DataConfig, SyntheticConfig, TrackConfig
 from sgad_jax.io.synthetic import SyntheticDataset
@@ -206,7 +207,6 @@ def test_repeated_depth_image(scene, hold):
     """A frame whose depth image repeats the previous one (7-Scenes' repeated captures) keeps that
     frame's pose when ``hold_repeated_depth`` is on, and the frames after it are tracked as before."""
     from sgad_jax.config import SLAMConfig
-    from sgad_jax.pipeline import SLAM
 
     ds = scene[0]
     cfg = SLAMConfig(track=dataclasses.replace(CFG, hold_repeated_depth=hold))
@@ -228,10 +228,10 @@ def test_repeated_depth_image(scene, hold):
 def test_run_state_scans_over_a_sequence_like_the_host_loop():
     """The run state is one pytree and the step is pure: `lax.scan` of tracking and queueing each
     frame for mapping (`slam.track_step`, `slam.remember`) over a synthetic sequence gives the host
-    loop's poses and leaves the same recent frames (`pipeline.SLAM`, mapping included)."""
+    loop's poses and leaves the same recent frames (`sgad_jax.system.SLAM`, mapping included)."""
     cfg = resolve_config(None, None, overrides=["data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=6", "map.iterations=2"])
     ds = SyntheticDataset(cfg.data)
-    system = pipeline.SLAM(cfg, ds.intrinsics, initial_pose=pipeline.initial_pose(ds))
+    system = SLAM(cfg, ds.intrinsics, initial_pose=initial_pose(ds))
     host_poses = np.stack([system.add(ds[i]) for i in range(len(ds))])
     frames = jax.tree.map(lambda *x: jnp.stack(x), *[make_frame(ds[i].rgb, ds[i].depth, ds[i].depth_filled) for i in range(len(ds))])
     dts = jnp.asarray(np.diff(ds.timestamps, prepend=ds.timestamps[0]), jnp.float32)

@@ -21,7 +21,7 @@ import numpy as np
 
 from sgad_jax.config import ConfigError
 from sgad_jax import splat
-from sgad_jax.eval import image
+from sgad_jax.eval import image, lpips_weights
 from sgad_jax.eval.ate import ate, rpe
 from sgad_jax.io.base import DatasetError
 from sgad_jax.io.files import write_json, write_text
@@ -134,8 +134,8 @@ def evaluate_run(
     fresh = render_held_out(run, sorted(holdout & set(chosen)), scene_frames, layers, composite) if rerender else {}
     per_frame = []
     try:  # LPIPS only where its weights are installed and intact, as in the run
-        weights = image.load_lpips_weights() if (fresh or rendered) else None
-    except image.LPIPSUnavailable:
+        weights = lpips_weights.load_lpips_weights() if (fresh or rendered) else None
+    except lpips_weights.LPIPSUnavailable:
         weights = None
     for i in chosen:
         if i in fresh:

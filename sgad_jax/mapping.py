@@ -249,7 +249,7 @@ def refine_pose(
     Solved by ``optimistix.minimise`` with Adam (``optx.OptaxMinimiser``), at most ``iterations``
     steps, stopping early once a step moves the pose by less than ``tol`` (metres and radians).
     Adam rather than a quasi-Newton solver: the loss is an L1 whose mask changes with the pose, and
-    on the test plane of ``tests/test_map.py`` BFGS ended 2.7 mm from the true motion against
+    on the test plane of ``tests/test_mapping.py`` BFGS ended 2.7 mm from the true motion against
     Adam's 0.5 mm (docs/method.md)."""
 
     def loss_fn(xi, _):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from sgad_jax import lie, slam, splat
-from sgad_jax import map as mapping
+from sgad_jax import mapping
 from sgad_jax.config import DataConfig, MapConfig, SyntheticConfig, TrackConfig
 from sgad_jax.io.synthetic import SyntheticDataset
 from sgad_jax.types import Intrinsics, make_frame
