@@ -316,7 +316,7 @@ def eval_mesh_run(run_dir, gt_mesh, *, data: str | None = None, mesh: str | None
     run = Run(run_dir)
     rec_path = pathlib.Path(mesh) if mesh else run.root / "mesh.ply"
     if not rec_path.is_file():
-        raise DatasetError(f"{rec_path}: no mesh (make it with `sgad-jax mesh {run}` or run with --mesh)")
+        raise DatasetError(f"{rec_path}: no mesh (make it with `sgad-jax mesh {run.root}` or run with --mesh)")
     rv, rf, _ = read_mesh_ply(rec_path)
     gv, gf, _ = read_mesh_ply(gt_mesh)
     if len(gf) == 0:
