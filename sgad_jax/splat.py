@@ -27,9 +27,9 @@ of ``K // 2`` pixels on every side (Gaussians centred just outside the image sti
   surfaces they are hidden anyway).
 
 Compositing is sort-free and exact: ``T_j = exp(sum_k [k before j] log(1 - alpha_k))`` over a
-pixel's C candidates, with "before" meaning smaller depth in the view, ties broken by candidate
-index (in a frame's own view at its own pose: smaller measured depth, see :func:`render_own`). A
-per-pixel sort is much slower on XLA:CPU.
+pixel's C candidates, with "before" meaning a smaller order key (the depth in the view the
+Gaussian would have at its measured depth, see :func:`project`), ties broken by candidate index.
+A per-pixel sort is much slower on XLA:CPU.
 
 Layout: per-Gaussian attributes are lists of A arrays in the order of :data:`ATTRS` (stacking
 them into one array cost more than compositing on XLA:CPU); images come out as ``(h, w, 3)`` colour, ``(h, w)`` depth and accumulated opacity.
@@ -51,9 +51,10 @@ from jaxtyping import Array, Float, Int
 from sgad_jax import lie
 from sgad_jax.types import Intrinsics, PixelGaussians
 
-#: Rows of a projected-attribute array: centre (u, v) in pixels, z-depth, the conic (inverse 2D
-#: covariance) ``a, b, c`` of ``a du^2 + 2 b du dv + c dv^2``, opacity, colour.
-ATTRS = ("u", "v", "z", "conic_a", "conic_b", "conic_c", "opacity", "r", "g", "b")
+#: Rows of a projected-attribute array: centre (u, v) in pixels, z-depth, the compositing order key
+#: (the z-depth the Gaussian would have at its *measured* depth, offset zero: see :func:`project`),
+#: the conic (inverse 2D covariance) ``a, b, c`` of ``a du^2 + 2 b du dv + c dv^2``, opacity, colour.
+ATTRS = ("u", "v", "z", "key", "conic_a", "conic_b", "conic_c", "opacity", "r", "g", "b")
 NUM_ATTRS = len(ATTRS)
 NEAR = 0.01  # metres; Gaussians closer than this to the camera are culled
 DILATION = 0.1  # pixels^2 added to the projected covariance (3DGS's low-pass filter)
@@ -102,7 +103,12 @@ def project(
     """Attributes (:data:`ATTRS`) of a frame's Gaussians (or a crop of them starting at pixel
     (``v0``, ``u0``)) seen from camera ``dst_pose``; ``as_rows``: as a list of the A images.
 
-    Culled Gaussians (behind the near plane) get opacity 0.
+    Culled Gaussians (behind the near plane) get opacity 0. Gaussians are binned and composited in
+    the order of ``key``, their depth in the view had they no offset: an offset moves a Gaussian
+    along its own pixel's ray, within the sensor's depth error, and in another view a fraction of a
+    pixel, while ordered by ``z`` it decides which of two neighbouring Gaussians of a surface hides
+    the other, an order the fit of one view learns and no other view shares (as in the own view,
+    see :func:`render_own`; measured in docs/method.md).
     """
     R, t = lie.rotation_components(dst_pose.inverse() @ src_pose)
     rows = _project(g, *rays(g, intr, v0, u0), R, t, intr.fx, intr.fy, intr.cx, intr.cy)
@@ -142,7 +148,8 @@ def _project(g: PixelGaussians, xz, yz, R, t, fx, fy, cx, cy) -> list[Float[Arra
     x, y, z = jax.lax.optimization_barrier(jnp.stack(_camera_points(g, xz, yz, R, t)))
     u, v, zs, ca, cb, cc = _ewa_parts(x, y, z, g.radius, fx, fy, cx, cy)[0]
     opacity = jnp.where(z > NEAR, g.opacity, 0.0)
-    return [u, v, zs, ca, cb, cc, opacity, *(g.rgb[..., c] for c in range(3))]
+    key = _camera_points(dataclasses.replace(g, offset=jnp.zeros_like(g.offset)), xz, yz, R, t)[2]
+    return [u, v, zs, key, ca, cb, cc, opacity, *(g.rgb[..., c] for c in range(3))]
 
 
 def _project_fwd(*args):
@@ -151,7 +158,7 @@ def _project_fwd(*args):
 
 def _project_bwd(args, cts):
     g, xz, yz, R, t, fx, fy, cx, cy = args
-    gu, gv, gz, gca, gcb, gcc, gop = cts[:7]
+    gu, gv, gz, _, gca, gcb, gcc, gop = cts[:8]  # the order key has no gradient
     (x, y, z), pull_points = jax.vjp(_camera_points, g, xz, yz, R, t)
     x, y, z = jax.lax.optimization_barrier(jnp.stack((x, y, z)))
     radius, pull_radius = jax.vjp(lambda g: g.radius, g)
@@ -182,7 +189,7 @@ def _project_bwd(args, cts):
     g_fx = total(gu * xz_ + r2 * (g_uu * 2.0 * fx * (1.0 + xz_ * xz_) + g_uv * fy * xz_ * yz_), fx)
     g_fy = total(gv * yz_ + r2 * (g_vv * 2.0 * fy * (1.0 + yz_ * yz_) + g_uv * fx * xz_ * yz_), fy)
     d_g, d_xz, d_yz, d_R, d_t = pull_points((g_xz * iz, g_yz * iz, g_z))
-    d_rgb = dataclasses.replace(jax.tree.map(jnp.zeros_like, g), rgb=jnp.stack(cts[7:], axis=-1))
+    d_rgb = dataclasses.replace(jax.tree.map(jnp.zeros_like, g), rgb=jnp.stack(cts[8:], axis=-1))
     d_g = jax.tree.map(lambda *xs: sum(xs), d_g, pull_radius(g_radius)[0], pull_opacity(jnp.where(front, gop, 0.0))[0], d_rgb)
     return d_g, d_xz, d_yz, d_R, d_t, g_fx, g_fy, total(gu, cx), total(gv, cy)
 
@@ -243,8 +250,8 @@ def bin_layers(
     """Indices of the ``layers`` nearest Gaussians whose centre rounds onto each slot (-1: none); the
     slots cover the image and a margin of ``window // 2``.
 
-    Integer work only (the result carries no gradient). Depth order is by log-depth quantised to the
-    bits left over by the index in an int32 key, then by index.
+    Integer work only (the result carries no gradient). Depth order is by the log of the order key
+    (see :func:`project`) quantised to the bits left over by the index in an int32 key, then by index.
     """
     attrs = jax.lax.stop_gradient(attrs)
     n = attrs[0].shape[-1]
@@ -256,8 +263,8 @@ def bin_layers(
         raise ValueError(f"too many Gaussians to bin in one call: {n}")
     u = jnp.round(attrs[0]).astype(jnp.int32) + r
     v = jnp.round(attrs[1]).astype(jnp.int32) + r
-    z = attrs[2]
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & (attrs[6] > 0) & (z > near)
+    z = attrs[3]
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & (attrs[7] > 0) & (attrs[2] > near)
     pix = jnp.where(inside, v * w + u, h * w)  # out-of-image Gaussians go to a dump bucket
     levels = (1 << depth_bits) - 1
     q = jnp.clip(jnp.log(jnp.maximum(z, near) / near) / math.log(far / near), 0.0, 1.0) * levels
@@ -320,7 +327,7 @@ def _candidates(layers: list[Float[Array, "l H W"]], window: int) -> list[list[F
 
 def _alpha(cand, pu, pv):
     """Opacity of a candidate at every pixel, with the pieces its derivative needs."""
-    u, v, z, ca, cb, cc, opacity = cand[:7]
+    u, v, z, _key, ca, cb, cc, opacity = cand[:8]
     du, dv = pu - u, pv - v
     gauss = jnp.exp(-0.5 * (ca * du * du + 2.0 * cb * du * dv + cc * dv * dv))
     raw = opacity * gauss
@@ -336,7 +343,7 @@ def _forward(layers, window, row0=0, exact=False):
     """Candidates, opacities, depths, blending weights and compositing order keys of the pixels of
     ``layers`` (rows from ``row0``).
 
-    ``layers`` hold :data:`ATTRS` (composited in depth order), or with ``exact`` the own-pose
+    ``layers`` hold :data:`ATTRS` (composited in the order of their keys), or with ``exact`` the own-pose
     attributes of :func:`project_own` (each candidate's opacity is then read from its offset
     class's image, ``parts`` is just it; composited in the order of the measured depths).
     """
@@ -351,7 +358,7 @@ def _forward(layers, window, row0=0, exact=False):
         pv = (jnp.arange(h) + row0).astype(dtype)[:, None]
         pu = jnp.arange(w, dtype=dtype)[None, :]
         parts = [_alpha(c, pu, pv) for c in cands]
-        zs = keys = [c[2] for c in cands]
+        zs, keys = [c[2] for c in cands], [c[3] for c in cands]
     alphas = [p[0] for p in parts]
     qs = [1.0 - a for a in alphas]
     n = len(cands)
@@ -476,7 +483,6 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
     else:
         weights, ss, qs, zs = (list(x) for x in jax.lax.optimization_barrier(
             (jnp.stack(weights), jnp.stack(ss), jnp.stack(qs), jnp.stack(zs))))
-        keys = zs
     ws = [wj * sj for wj, sj in zip(weights, ss)]
     g_alphas = []
     for j in range(n):
@@ -499,7 +505,7 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
             rows.append([0, 2 + cls[j % len(cls)], a - 3, a - 2, a - 1])
             continue
         alpha, raw, gauss, du, dv = parts[j]
-        u, v, z, ca, cb, cc, opacity = cands[j][:7]
+        u, v, z, _key, ca, cb, cc, opacity = cands[j][:8]
         g_power = -g_alphas[j] * raw
         grads.append(
             jnp.stack(
@@ -515,7 +521,7 @@ def _band_bwd(window, layers, g_rgb, g_depth, g_acc, row0, exact=False):
                 ]
             )
         )
-        rows.append(list(range(NUM_ATTRS)))
+        rows.append([a for a in range(NUM_ATTRS) if ATTRS[a] != "key"])  # the key has no gradient
     if layers[0].shape[0] == 1:
         # One layer: materialising the per-candidate gradients is faster; with more layers their
         # images no longer fit in cache and letting XLA fuse them into the slot sums is faster.
@@ -554,7 +560,7 @@ def render_own(g: PixelGaussians, pose: lie.SE3, intr: Intrinsics, *, window: in
     chatters: on 10 TUM frames at 320x240, 42.6 dB against 48.8 dB with this rule.)
     A ``view_pose`` may differ slightly from ``pose``: the candidate windows stay at the source
     pixels, the projected centres move, so gradients with respect to either pose are exact; the
-    candidates are then composited in view-depth order, as in any other view.
+    candidates are then composited in the order of their keys, as in any other view (:func:`project`).
     The backward pass runs in row bands of about :data:`BAND_PIXELS` pixels, the projection's included.
     """
     exact = view_pose is None

@@ -2,7 +2,8 @@
 
 Written independently of the fast paths and as plainly as possible: every pixel looks at every
 Gaussian, keeps those whose rounded projected centre is within the diamond window (the image model's
-truncation rule, see :mod:`sgad_jax.splat`), sorts them by depth (ties by index) and composites
+truncation rule, see :mod:`sgad_jax.splat`), sorts them by the depth in the view each would have at
+its measured depth, without its offset (ties by index), and composites
 front to back with a cumulative product. Memory is O(pixels x Gaussians): small scenes only.
 """
 
@@ -16,7 +17,8 @@ from sgad_jax.types import Intrinsics, PixelGaussians
 
 
 def _gaussians_in_view(gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, intr: Intrinsics):
-    """Flattened (n,) centre, conic, opacity and (n, 3) colour of all frames' Gaussians in the view."""
+    """Flattened (n,) centre, depth, the depth of the same ray's point at the measured depth,
+    conic, opacity and (n, 3) colour of all frames' Gaussians in the view."""
     f, h, w = gs.depth.shape
     K = jnp.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]], gs.depth.dtype)
     v, u = jnp.meshgrid(jnp.arange(h), jnp.arange(w), indexing="ij")
@@ -28,6 +30,7 @@ def _gaussians_in_view(gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, i
     M = view_from_world[None] @ world_from_src  # (f, 4, 4)
     pts = jnp.einsum("fij,fhwj->fhwi", M[:, :3, :3], pts_src) + M[:, None, None, :3, 3]
     pts = pts.reshape(-1, 3)
+    measured = jnp.einsum("fj,fhwj->fhw", M[:, 2, :3], rays[None] * gs.depth[..., None]) + M[:, None, None, 2, 3]
     z = pts[:, 2]
     uv = (pts @ K.T)[:, :2] / z[:, None]
     # EWA Jacobian of the projection at each centre; isotropic 3D covariance r^2 I.
@@ -41,16 +44,16 @@ def _gaussians_in_view(gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, i
     cov = r2[:, None, None] * (J @ jnp.swapaxes(J, -1, -2)) + DILATION * jnp.eye(2, dtype=z.dtype)
     conic = jnp.linalg.inv(cov)
     opacity = jnp.where(z > NEAR, gs.opacity.reshape(-1), 0.0)
-    return uv, z, conic, opacity, gs.rgb.reshape(-1, 3)
+    return uv, z, measured.reshape(-1), conic, opacity, gs.rgb.reshape(-1, 3)
 
 
 def render(
     gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, *, window: int = 3, key=None
 ) -> Render:
     """Render frames ``gs`` (stacked ``(f, h, w)``) at ``poses`` into ``view_pose``, densely.
-    ``key`` (``(f, h, w)``): the compositing order, if not the depth in the view (a frame in its
-    own view at its own pose is composited in the order of its measured depths ``gs.depth``)."""
-    uv, z, conic, opacity, rgb = _gaussians_in_view(gs, poses, view_pose, intr)
+    ``key`` (``(f, h, w)``): the compositing order, if not the depth in the view of each
+    Gaussian's point at its measured depth ``gs.depth`` (in a frame's own view: ``gs.depth``)."""
+    uv, z, measured, conic, opacity, rgb = _gaussians_in_view(gs, poses, view_pose, intr)
     h, w = intr.height, intr.width
     r = window // 2
     pv, pu = jnp.meshgrid(jnp.arange(h), jnp.arange(w), indexing="ij")
@@ -60,7 +63,7 @@ def render(
     d = p - uv[None]  # (P, n, 2)
     power = 0.5 * jnp.einsum("pni,nij,pnj->pn", d, conic, d)
     alpha = jnp.where(in_window, jnp.minimum(opacity[None] * jnp.exp(-power), MAX_ALPHA), 0.0)
-    order = jnp.argsort(z if key is None else key.reshape(-1), stable=True)  # ties by index; the same for every pixel
+    order = jnp.argsort(measured if key is None else key.reshape(-1), stable=True)  # ties by index; the same for every pixel
     a = alpha[:, order]
     trans = jnp.cumprod(jnp.concatenate([jnp.ones_like(a[:, :1]), 1.0 - a[:, :-1]], axis=1), axis=1)
     wgt = a * trans

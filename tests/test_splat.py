@@ -72,6 +72,9 @@ def test_any_view_matches_reference():
     ref = splat_ref.render(g, poses, view, _intr())
     assert float(ref.alpha.max()) > 0.5  # the scene is visible, with overlap
     _close(fast, ref)
+    # The offsets (+-10 cm) reorder Gaussians: the rule (order of the measured depths) matters here.
+    in_z_order = splat_ref.render(g, poses, view, _intr(), key=g.z)
+    assert float(jnp.abs(fast.rgb - in_z_order.rgb).max()) > 1e-3
 
 
 @pytest.mark.parametrize("window", [3, 5])
@@ -87,7 +90,7 @@ def test_own_view_matches_reference(window):
     pose1 = jax.tree.map(lambda x: x[None], pose)
     fast = splat.render_own(g1, pose, _intr(), window=window)
     _close(fast, splat_ref.render(g, pose1, pose, _intr(), window=window, key=g.depth))
-    in_z_order = splat_ref.render(g, pose1, pose, _intr(), window=window)
+    in_z_order = splat_ref.render(g, pose1, pose, _intr(), window=window, key=g.z)
     assert float(jnp.abs(fast.rgb - in_z_order.rgb).max()) > 1e-3
 
 
@@ -180,11 +183,13 @@ def test_renderer_vmaps_over_views():
 
 
 def test_binning_keeps_the_nearest_layers():
-    """With fewer layers than Gaussians per pixel, the kept ones are the nearest (in depth order)."""
+    """With fewer layers than Gaussians per pixel, the kept ones are the nearest by measured depth
+    (the order key), whatever their offsets."""
     g, poses, view = _scene(3, 15), _poses(3, 16, scale=0.0), _pose(17, scale=0.0)
     attrs = splat.project_frames(g, poses, view, _intr())
     idx = np.asarray(splat.bin_layers(attrs, _intr(), 2, window=3))
-    z = np.asarray(attrs[2])
+    z = np.asarray(g.depth).reshape(-1)  # the poses are equal: the key is the measured depth
+    np.testing.assert_allclose(np.asarray(attrs[3]), z, rtol=1e-12)
     r = 1
     for v in range(H):
         for u in range(W):
