@@ -157,7 +157,6 @@ class MapConfig:
     learn_neighbours: bool = True  # neighbours as learned (paper Eq. 1); False: their initial Gaussians
     depth_fill: str = "inpaint"  # missing depth for the Gaussians: inpaint (Navier-Stokes) | render (previous frames' Gaussians)
     radius_init: str = "extent"  # initial radius D / f taken as the 3-sigma extent (extent) or as sigma (sigma)
-    own_order: str = "measured"  # own-view compositing order: measured depth | view (depth with offsets)
     coverage_mask: bool = True  # neighbour views: fit only pixels the frame's Gaussians cover
     render_init: bool = False  # refine the pose guess by rendering the previous frame's Gaussians
     render_init_iterations: int = 30
@@ -165,7 +164,7 @@ class MapConfig:
     host_budget_mb: float = 64.0  # mapped frames' Gaussians kept in host memory; older ones live on disk only
 
     def __post_init__(self):
-        choices = {"depth_fill": ("inpaint", "render"), "radius_init": ("extent", "sigma"), "own_order": ("measured", "view")}
+        choices = {"depth_fill": ("inpaint", "render"), "radius_init": ("extent", "sigma")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"map.{name}: choose {' or '.join(allowed)}, got {getattr(self, name)!r}")

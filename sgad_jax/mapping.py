@@ -189,8 +189,8 @@ def map_frame(
 
     ``background`` is the neighbours' (fixed) Gaussians rendered into the own view; the frame's
     Gaussians are composited over it there, as in :func:`render_frame`. The own view is the
-    frame's camera at ``pose``, rendered by the own-pose path (composited in measured-depth order;
-    ``cfg.own_order="view"``: in view-depth order, through ``views.pose[0]``, which must be ``pose``).
+    frame's camera at ``pose``, rendered by the own-pose path (composited in measured-depth order,
+    as every view is: see :func:`sgad_jax.splat.project`).
     """
     schedule = jnp.asarray(view_schedule(cfg, views.present.shape[0]))
     opt = optimizer(cfg)
@@ -204,7 +204,7 @@ def map_frame(
     def step(carry, k):
         g, state = carry
         loss, grad = jax.value_and_grad(view_loss, argnums=1)(
-            cfg, g, pose, views, k, intr, background, window=window, targets=targets, own_at_pose=cfg.own_order == "measured"
+            cfg, g, pose, views, k, intr, background, window=window, targets=targets, own_at_pose=True
         )
         if not cfg.offset_at_invalid:
             grad = dataclasses.replace(grad, offset=grad.offset * views.valid[0])
