@@ -148,6 +148,7 @@ def _project(g: PixelGaussians, xz, yz, R, t, fx, fy, cx, cy) -> list[Float[Arra
     x, y, z = jax.lax.optimization_barrier(jnp.stack(_camera_points(g, xz, yz, R, t)))
     u, v, zs, ca, cb, cc = _ewa_parts(x, y, z, g.radius, fx, fy, cx, cy)[0]
     opacity = jnp.where(z > NEAR, g.opacity, 0.0)
+    # The same arithmetic as z: with offsets fixed the order is bit for bit the depth order.
     key = _camera_points(dataclasses.replace(g, offset=jnp.zeros_like(g.offset)), xz, yz, R, t)[2]
     return [u, v, zs, key, ca, cb, cc, opacity, *(g.rgb[..., c] for c in range(3))]
 

@@ -48,11 +48,10 @@ def _gaussians_in_view(gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, i
 
 
 def render(
-    gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, *, window: int = 3, key=None
+    gs: PixelGaussians, poses: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, *, window: int = 3
 ) -> Render:
-    """Render frames ``gs`` (stacked ``(f, h, w)``) at ``poses`` into ``view_pose``, densely.
-    ``key`` (``(f, h, w)``): the compositing order, if not the depth in the view of each
-    Gaussian's point at its measured depth ``gs.depth`` (in a frame's own view: ``gs.depth``)."""
+    """Render frames ``gs`` (stacked ``(f, h, w)``) at ``poses`` into ``view_pose``, densely, in the
+    order of each Gaussian's depth in the view at its measured depth ``gs.depth``."""
     uv, z, measured, conic, opacity, rgb = _gaussians_in_view(gs, poses, view_pose, intr)
     h, w = intr.height, intr.width
     r = window // 2
@@ -63,7 +62,7 @@ def render(
     d = p - uv[None]  # (P, n, 2)
     power = 0.5 * jnp.einsum("pni,nij,pnj->pn", d, conic, d)
     alpha = jnp.where(in_window, jnp.minimum(opacity[None] * jnp.exp(-power), MAX_ALPHA), 0.0)
-    order = jnp.argsort(measured if key is None else key.reshape(-1), stable=True)  # ties by index; the same for every pixel
+    order = jnp.argsort(measured, stable=True)  # ties by index; the same for every pixel
     a = alpha[:, order]
     trans = jnp.cumprod(jnp.concatenate([jnp.ones_like(a[:, :1]), 1.0 - a[:, :-1]], axis=1), axis=1)
     wgt = a * trans
