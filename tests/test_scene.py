@@ -203,6 +203,7 @@ def test_select_frames_prefers_frames_seeing_the_view():
     assert 9 not in scene.select_frames(view, np.stack(poses), np.stack(pts), intr, 10)
 
 
+@pytest.mark.slow
 def test_finetune_step_is_adam_on_the_present_frames():
     """One refinement step equals optax's Adam with the mapping's learning rates on the present
     frames' Gaussians (measured depth fixed), and leaves a padding frame as it was; with the

@@ -190,6 +190,7 @@ def test_depth_weighted_cost(scene):
         assert abs(float(weighted) - sum(parts)) > 0.05 * sum(parts)  # the weights matter here
 
 
+@pytest.mark.slow
 def test_track_step_does_not_recompile(scene):
     ds = scene[0]
     traced = chex.assert_max_traces(slam.track_step, n=1)
@@ -202,6 +203,7 @@ def test_track_step_does_not_recompile(scene):
     assert int(ins.overflow) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("hold", [True, False])
 def test_repeated_depth_image(scene, hold):
     """A frame whose depth image repeats the previous one (7-Scenes' repeated captures) keeps that
