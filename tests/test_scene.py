@@ -90,6 +90,7 @@ def test_render_scene_matches_the_dense_reference(seed):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-9)
 
 
+@functools.partial(jax.jit, static_argnames="tolerance")
 def _priority_reference(gs, poses, view, intr, tolerance):
     """The priority composite from the dense reference renderer, frame by frame: at each pixel the
     frames' surfaces from the last to the first, each laid over the result so far unless the
