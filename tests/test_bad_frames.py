@@ -155,6 +155,7 @@ def test_bad_tum_frames_stop_resume_and_skip(tmp_path, capsys):
     assert abs(m["ate_rmse_cm"] - clean["ate_rmse_cm"]) <= 0.1 * clean["ate_rmse_cm"]
 
 
+@pytest.mark.slow
 def test_timestamps_must_increase(tmp_path, capsys):
     root = tmp_path / "tum"
     for sub in ("rgb", "depth"):

@@ -111,6 +111,7 @@ def _priority_reference(gs, poses, view, intr, tolerance):
     return rgb, depth, alpha
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 2])
 def test_priority_render_scene_matches_the_dense_reference(seed):
     """Priority compositing (the default): values and vector-Jacobian products against the dense
