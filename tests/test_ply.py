@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import plyfile
 import pytest
+from scipy import spatial
 
 from conftest import shared
 from sgad_jax import lie, splat_ref
@@ -196,7 +197,6 @@ def test_replica_gaussians_on_the_mesh(tmp_path):
     distance below 1 cm), measured against points sampled densely on the mesh's triangles."""
     data = shared("replica_office0/rendered_100")
     mesh_path = data.parent / "office0_mesh.ply"
-    spatial = pytest.importorskip("scipy.spatial")
     out = tmp_path / "run"
     proc = subprocess.run(
         [sys.executable, "-m", "sgad_jax", "run", "--data", str(data), "--out", str(out), "--max-frames", "2", "--quiet",

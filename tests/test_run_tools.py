@@ -72,7 +72,6 @@ def test_eval_reproduces_the_run(run_dir, capsys):
 def test_eval_ate_matches_evo(run_dir):
     """The ATE recomputed from the run's files against evo's APE on the same trajectory and ground
     truth (an independent implementation of the alignment and the error)."""
-    pytest.importorskip("evo")
     from evo.core import metrics
     from evo.core.trajectory import PoseTrajectory3D
 
