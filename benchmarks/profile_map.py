@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     nb_pose = jax.tree.map(lambda x: x[0], nb_poses)
     part("neighbour_render_fwd_bwd", jax.grad(lambda g: jnp.sum(splat.render(mapping._one(g), mapping._one(pose), nb_pose, intr, layers=1).rgb)), g0)
     for k, name in ((0, "own_view_step"), (1, "neighbour_view_step")):
-        part(name, lambda g, k=k: jax.value_and_grad(mapping.view_loss, argnums=1)(cfg, g, pose, views, k, intr, background, targets=targets, own_at_pose=True), g0)
+        part(name, lambda g, k=k: jax.value_and_grad(mapping.view_loss, argnums=1)(cfg, g, pose, views, k, intr, background, targets=targets), g0)
     opt = mapping.optimizer(cfg)
     part("adam_update", lambda g, s: optax.apply_updates(g, opt.update(g, s, g)[0]), g0, opt.init(g0))
     part("frame_render", lambda g: mapping.render_frame(g, pose, background, intr), g0)

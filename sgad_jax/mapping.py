@@ -125,12 +125,13 @@ def _one(tree):
 
 
 def render_into(
-    g: PixelGaussians, pose: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, own, window: int, *, own_at_pose: bool = False
+    g: PixelGaussians, pose: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, own, window: int, *, own_at_pose: bool = True
 ) -> splat.Render:
     """The frame's Gaussians in a view: the exact own-view path, or one binned layer elsewhere.
     ``own_at_pose``: the own view is seen at ``pose`` itself (``view_pose`` ignored there; the
-    faster own-pose renderer, whose image does not depend on the pose and which composites in the
-    order of the measured depths, see :func:`sgad_jax.splat.render_own`)."""
+    faster own-pose renderer, whose image does not depend on the pose, see
+    :func:`sgad_jax.splat.render_own`); ``False`` renders it at ``view_pose``, so that the own
+    view's pose gradient can be checked (``tests/test_mapping.py``)."""
 
     def own_view(_):
         return splat.render_own(g, pose, intr, window=window, view_pose=None if own_at_pose else view_pose)
@@ -152,7 +153,7 @@ def view_loss(
     *,
     window: int = 3,
     targets: losses.SSIMTarget | None = None,
-    own_at_pose: bool = False,
+    own_at_pose: bool = True,
 ):
     """The mapping loss of the frame's Gaussians in view ``k`` (0: own view, over ``background``);
     ``targets``: the views' colour as :func:`sgad_jax.losses.ssim_target` (stacked), if computed;
@@ -197,14 +198,15 @@ def map_frame(
     # A missing neighbour's iterations run like the others (which path an iteration takes depends
     # on the schedule alone: under vmap a data-dependent branch would run both paths at every
     # iteration) and their update is discarded: fitting the own view through the other-view path
-    # instead (view-depth order) made a first frame with learned offsets chatter.
+    # instead (in the view-depth order it had before the order key) made a first frame with learned
+    # offsets chatter.
     present = views.present
     targets = jax.vmap(losses.ssim_target)(views.rgb)  # fixed: computed once, not at every step
 
     def step(carry, k):
         g, state = carry
         loss, grad = jax.value_and_grad(view_loss, argnums=1)(
-            cfg, g, pose, views, k, intr, background, window=window, targets=targets, own_at_pose=True
+            cfg, g, pose, views, k, intr, background, window=window, targets=targets
         )
         if not cfg.offset_at_invalid:
             grad = dataclasses.replace(grad, offset=grad.offset * views.valid[0])

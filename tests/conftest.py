@@ -15,7 +15,7 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)
 
 # Most of the suite's time is XLA:CPU compiling the unrolled renderer. Its older loop emitters compile
-# it in about 60% of the time of the default fusion emitters and compute the same values (the tests'
+# it in 60-75% of the time of the default fusion emitters and compute the same values (the tests'
 # tolerances hold either way). Only for the jaxlib it was measured on: XLA aborts on a flag it does
 # not know. A flag the caller sets wins.
 if importlib.metadata.version("jaxlib").startswith("0.10.") and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):

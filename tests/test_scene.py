@@ -74,10 +74,9 @@ def test_render_scene_matches_the_dense_reference(seed):
         gs = _frames(3, seed)
         poses = lie.exp(jnp.asarray(np.random.default_rng(seed + 10).normal(0, 0.04, (3, 6))))
         view = lie.exp(jnp.asarray(np.random.default_rng(seed + 20).normal(0, 0.04, 6)))
-        # one layer count for both seeds: they share the compiled programs, and none is dropped
-        layers = DENSE_LAYERS
-        assert 2 <= _slot_counts(gs, poses, view, intr) <= layers
-        fast = scene.render_scene(gs, poses, view, intr, composite="depth", layers=layers)
+        # one layer count for both seeds (they share the compiled programs), and none is dropped
+        assert 2 <= _slot_counts(gs, poses, view, intr) <= DENSE_LAYERS
+        fast = scene.render_scene(gs, poses, view, intr, composite="depth", layers=DENSE_LAYERS)
         ref = jax.jit(splat_ref.render)(gs, poses, view, intr)
         for a, b in zip(fast, ref):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-9)
