@@ -116,6 +116,9 @@ class TrackConfig:
     # outliers (noise spikes, flying pixels) are dropped before they bend their neighbours'
     # covariances or enter T. 0: off, as the paper (docs/method.md).
     median_gate: float = 0.01
+    # With the gate on, the frame's points are tracked at that 3x3 median depth instead of their own
+    # pixel's (false: their own, as the paper); T still receives the measured depths (docs/method.md).
+    median_depth: bool = True
     fuse_observations: int = 4  # each entry of T: the mean of its voxel's first N observations (1: the first, as the paper)
 
     def __post_init__(self):

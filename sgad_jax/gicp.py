@@ -183,9 +183,11 @@ def _nearest(D: Float[Array, "n *m"], k: int) -> Bool[Array, "n *m"]:
     return (rank < k) & jnp.isfinite(D)  # ranks < n
 
 
-def _median_consistent(depth: Float[Array, "h w"], d: Float[Array, "hs ws"], s: int, off: int, gate: float) -> Bool[Array, "hs ws"]:
+def _median_consistent(
+    depth: Float[Array, "h w"], d: Float[Array, "hs ws"], s: int, off: int, gate: float
+) -> tuple[Bool[Array, "hs ws"], Float[Array, "hs ws"]]:
     """Whether each strided pixel's depth ``d`` lies within ``gate * d`` of the median of the
-    measured depths of its full-resolution 3x3 neighbourhood (itself included).
+    measured depths of its full-resolution 3x3 neighbourhood (itself included), and that median.
 
     A depth pixel far from its neighbourhood's median is an outlier (a noise spike, a flying pixel
     at an edge): kept, it is a point off the surface in the frame and, once inserted, in the
@@ -207,7 +209,7 @@ def _median_consistent(depth: Float[Array, "h w"], d: Float[Array, "hs ws"], s: 
     n = sum((v < jnp.inf).astype(jnp.int32) for v in vals)
     lo, hi = (n - 1) // 2, n // 2  # the two middle measured values (one when n is odd)
     med = 0.5 * sum(jnp.where(lo == k, v, 0.0) + jnp.where(hi == k, v, 0.0) for k, v in enumerate(vals))
-    return jnp.abs(d - med) <= gate * d
+    return jnp.abs(d - med) <= gate * d, med
 
 
 def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics) -> PointCloud:
@@ -219,7 +221,7 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
     ``cfg.depth_gate * depth``. The neighbours are exact (ties broken by window position,
     :func:`_nearest`): a k-nearest-neighbour search restricted to the patch. With
     ``cfg.median_gate > 0``, pixels far from their 3x3 median are missing depth from the start
-    (:func:`_median_consistent`).
+    (:func:`_median_consistent`), and with ``cfg.median_depth`` the others sit at that median.
 
     Args:
         cfg: tracking config (stride R, k K_c, window, depth_gate, eps, min/max depth).
@@ -237,7 +239,10 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
     if cfg.max_depth > 0:
         valid = valid & (d < cfg.max_depth)
     if cfg.median_gate > 0:
-        valid = valid & _median_consistent(depth, d, s, off, cfg.median_gate)
+        ok, med = _median_consistent(depth, d, s, off, cfg.median_gate)
+        valid = valid & ok
+        if cfg.median_depth:  # nine measurements, not one: noise that passed the gate is mostly removed
+            d = med
     d = jnp.where(valid, d, 0.0)
     p = (d * (u - intr.cx) / intr.fx, d * (v - intr.cy) / intr.fy, d)
 

@@ -163,6 +163,10 @@ def track_step(
     """
     solver = track if differentiable else solve
     cloud = gicp.frame_points(cfg, depth, intr)
+    # T is built from the measured depths: tracked against T from median depths, long sequences
+    # drifted under depth noise (docs/method.md, "Depth outliers").
+    at_median = cfg.median_depth and cfg.median_gate > 0
+    cloud_t = gicp.frame_points(dataclasses.replace(cfg, median_depth=False), depth, intr) if at_median else cloud
     guess = predict(cfg, state, dt) if guess is None else guess
     guess = _select(_finite(guess), guess, state.T_prev)
     # The share of matched points depends on how dense they are against the voxels (low-resolution
@@ -195,7 +199,7 @@ def track_step(
     healthy = failure == 0
     accepted = healthy | recovered
     # A failed frame's points never reach T: its pose is only a guess.
-    cloud_w = dataclasses.replace(transform_cloud(T, cloud), valid=cloud.valid & accepted)
+    cloud_w = dataclasses.replace(transform_cloud(T, cloud_t), valid=cloud_t.valid & accepted)
     geom = geometry.fuse(state.geom, cloud_w, cfg.fuse_observations) if cfg.fuse_observations > 1 else state.geom
     geom, ins = geometry.insert(geom, cloud_w)
     moved = (dt > 0) & healthy

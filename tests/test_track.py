@@ -275,19 +275,23 @@ def test_median_gate_matches_numpy_and_passes_steep_planes():
     d = rng.uniform(1.0, 2.0, (30, 40)).astype(np.float32)
     d[rng.random(d.shape) < 0.2] = 0.0
     s, off = 5, 2
-    got = np.asarray(gicp._median_consistent(jnp.asarray(d), jnp.asarray(d[off::s, off::s]), s, off, 0.1))
+    got, med = gicp._median_consistent(jnp.asarray(d), jnp.asarray(d[off::s, off::s]), s, off, 0.1)
     pad = np.pad(d, 1).astype(np.float64)
     near = np.stack([pad[off + i :: s, off + j :: s][:6, :8] for i in range(3) for j in range(3)])
     centre = d[off::s, off::s]
-    want = np.abs(centre - np.nanmedian(np.where(near > 0, near, np.nan), axis=0)) <= 0.1 * centre
-    np.testing.assert_array_equal(got, want)
+    want_med = np.nanmedian(np.where(near > 0, near, np.nan), axis=0)
+    np.testing.assert_array_equal(np.asarray(got), np.abs(centre - want_med) <= 0.1 * centre)
+    np.testing.assert_allclose(np.asarray(med), want_med, rtol=1e-6)
     steep = (1.0 + 0.1 * np.arange(40))[None, :].repeat(30, 0).astype(np.float32)  # 10% per pixel along u
-    assert np.asarray(gicp._median_consistent(jnp.asarray(steep), jnp.asarray(steep[off::s, off::s]), s, off, 0.01))[:, :-1].all()
+    ok, med = gicp._median_consistent(jnp.asarray(steep), jnp.asarray(steep[off::s, off::s]), s, off, 0.01)
+    assert np.asarray(ok)[:, :-1].all()
+    np.testing.assert_allclose(np.asarray(med)[1:-1, :-1], steep[off::s, off::s][1:-1, :-1], rtol=1e-6)
 
 
 def test_median_gate_drops_depth_outliers_and_keeps_normals_on_a_plane():
     """40% of a tilted plane's pixels moved by N(0, 2 cm): with the 3x3 median gate the surviving
-    points stay near the plane and their normals near its normal; without it they do not."""
+    points stay near the plane and their normals near its normal; without it they do not. Placed
+    at the median depth (the default) they are closer still than at their own pixel's depth."""
     from sgad_jax.io.base import add_depth_noise
     from sgad_jax.types import make_intrinsics
 
@@ -298,14 +302,16 @@ def test_median_gate_drops_depth_outliers_and_keeps_normals_on_a_plane():
     rays = np.stack([(u - (w - 1) / 2) / f, (v - (h - 1) / 2) / f, np.ones((h, w))])
     depth = add_depth_noise((n[2] / np.tensordot(n, rays, 1)).astype(np.float32), 0.4, 0.02, seed=0, key=0)
     stats = {}
-    for gate in (0.0, 0.01):
-        cloud = gicp.frame_points(TrackConfig(stride=5, k=23, median_gate=gate), jnp.asarray(depth), intr)
+    for gate, at_median in ((0.0, False), (0.01, False), (0.01, True)):
+        cloud = gicp.frame_points(TrackConfig(stride=5, k=23, median_gate=gate, median_depth=at_median), jnp.asarray(depth), intr)
         ok = np.asarray(cloud.valid)
         angle = np.degrees(np.arccos(np.clip(np.abs(n @ np.asarray(cloud.normals)[:, ok]), 0.0, 1.0)))
         off_plane = n @ np.asarray(cloud.points)[:, ok] - n[2]
-        stats[gate] = np.median(angle), np.sqrt(np.mean(off_plane**2)), ok.mean()
-    assert stats[0.01][0] < 2.5 and stats[0.01][1] < 0.004 and stats[0.01][2] > 0.6  # degrees, metres, share kept
-    assert stats[0.0][0] > 5.0 and stats[0.0][1] > 0.01
+        stats[gate, at_median] = np.median(angle), np.sqrt(np.mean(off_plane**2)), ok.mean()
+    assert stats[0.01, False][0] < 2.5 and stats[0.01, False][1] < 0.004 and stats[0.01, False][2] > 0.6  # degrees, metres, share kept
+    assert stats[0.0, False][0] > 5.0 and stats[0.0, False][1] > 0.01
+    assert stats[0.01, True][1] < 0.6 * stats[0.01, False][1] and stats[0.01, True][0] < stats[0.01, False][0]
+    assert stats[0.01, True][2] == stats[0.01, False][2]  # the same points kept
 
 
 @pytest.mark.slow
