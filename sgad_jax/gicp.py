@@ -213,7 +213,13 @@ def _median_consistent(
 
 
 def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics) -> PointCloud:
-    """Geometry Gaussians of one depth frame, in camera coordinates.
+    """The points a depth frame is tracked with (the first of :func:`frame_clouds`)."""
+    return frame_clouds(cfg, depth, intr)[0]
+
+
+def frame_clouds(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics) -> tuple[PointCloud, PointCloud]:
+    """Geometry Gaussians of one depth frame, in camera coordinates: the points it is tracked with
+    and the points T receives (the same cloud unless ``cfg.median_depth`` moves the tracked ones).
 
     Takes every ``cfg.stride``-th pixel (offset ``stride // 2``), and for each point the ``cfg.k``
     nearest neighbours (itself included) in 3-D among the ``cfg.window`` x ``cfg.window`` patch of the
@@ -221,7 +227,9 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
     ``cfg.depth_gate * depth``. The neighbours are exact (ties broken by window position,
     :func:`_nearest`): a k-nearest-neighbour search restricted to the patch. With
     ``cfg.median_gate > 0``, pixels far from their 3x3 median are missing depth from the start
-    (:func:`_median_consistent`), and with ``cfg.median_depth`` the others sit at that median.
+    (:func:`_median_consistent`), and with ``cfg.median_depth`` the tracked points sit at that
+    median while T receives them at their measured depths (tracked against T built from median
+    depths, long noisy sequences drifted: docs/method.md, "Depth outliers").
 
     Args:
         cfg: tracking config (stride R, k K_c, window, depth_gate, eps, min/max depth).
@@ -229,7 +237,7 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
         intr: intrinsics of ``depth``.
 
     Returns:
-        PointCloud with ``m = ceil((h - R//2) / R) * ceil((w - R//2) / R)`` points.
+        Two PointClouds with ``m = ceil((h - R//2) / R) * ceil((w - R//2) / R)`` points.
     """
     s = cfg.stride
     off = s // 2
@@ -238,11 +246,18 @@ def frame_points(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
     valid = jnp.isfinite(d) & (d > cfg.min_depth)
     if cfg.max_depth > 0:
         valid = valid & (d < cfg.max_depth)
+    tracked = d
     if cfg.median_gate > 0:
         ok, med = _median_consistent(depth, d, s, off, cfg.median_gate)
         valid = valid & ok
         if cfg.median_depth:  # nine measurements, not one: noise that passed the gate is mostly removed
-            d = med
+            tracked = med
+    cloud = _cloud(cfg, tracked, valid, u, v, intr)
+    return cloud, (cloud if tracked is d else _cloud(cfg, d, valid, u, v, intr))
+
+
+def _cloud(cfg: TrackConfig, d, valid, u, v, intr: Intrinsics) -> PointCloud:
+    """Points of the strided depths ``d`` where ``valid``, with their window covariances."""
     d = jnp.where(valid, d, 0.0)
     p = (d * (u - intr.cx) / intr.fx, d * (v - intr.cy) / intr.fy, d)
 

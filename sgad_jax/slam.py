@@ -162,11 +162,7 @@ def track_step(
     compilation).
     """
     solver = track if differentiable else solve
-    cloud = gicp.frame_points(cfg, depth, intr)
-    # T is built from the measured depths: tracked against T from median depths, long sequences
-    # drifted under depth noise (docs/method.md, "Depth outliers").
-    at_median = cfg.median_depth and cfg.median_gate > 0
-    cloud_t = gicp.frame_points(dataclasses.replace(cfg, median_depth=False), depth, intr) if at_median else cloud
+    cloud, cloud_t = gicp.frame_clouds(cfg, depth, intr)  # tracked, and what T receives
     guess = predict(cfg, state, dt) if guess is None else guess
     guess = _select(_finite(guess), guess, state.T_prev)
     # The share of matched points depends on how dense they are against the voxels (low-resolution

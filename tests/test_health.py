@@ -55,7 +55,7 @@ def _reference_points(cfg: TrackConfig, ds: SyntheticDataset) -> np.ndarray:
     the measured depths, not the median ones the frame is tracked at)."""
     geom = empty_geometry(cfg.capacity, cfg.voxel_size, ds.gt_poses[0][:3, 3])
     for i in range(len(ds)):
-        cloud = gicp.frame_points(dataclasses.replace(cfg, median_depth=False), jnp.asarray(ds[i].depth), ds.intrinsics)
+        cloud = gicp.frame_clouds(cfg, jnp.asarray(ds[i].depth), ds.intrinsics)[1]
         geom, _ = geometry.insert(geom, transform_cloud(lie.from_matrix(ds.gt_poses[i]), cloud))
     return np.asarray(geom.points)[:, : int(geom.count)].T
 
