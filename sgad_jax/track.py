@@ -301,7 +301,7 @@ def relocalise(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.S
         gate = g0 * (g1 / g0) ** (i / max(steps - 1, 1))
         R, t = lie.rotation_components(T)
         q = lie.transform_points(R, t, a)
-        d2 = jnp.sum(q * q, axis=0)[:, None] + b2[None, :] - 2.0 * (q.T @ b)
+        d2 = jnp.sum(q * q, axis=0)[:, None] + b2[None, :] - 2.0 * jnp.matmul(q.T, b, precision=jax.lax.Precision.HIGHEST)
         j = jnp.argmin(d2, axis=1)
         ok = a_ok & (jnp.min(d2, axis=1) < gate * gate)
         e = jnp.where(ok, q - b[:, j], 0.0)
