@@ -6,11 +6,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
-_C1, _C2 = 0.01**2, 0.03**2
+SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2
 
 
 def _masked_mean(x: Float[Array, "h w"], mask: Bool[Array, "h w"] | Float[Array, "h w"] | None) -> Float[Array, ""]:
@@ -41,59 +42,35 @@ def depth_l1(pred: Float[Array, "h w"], target: Float[Array, "h w"], mask) -> Fl
     return _masked_mean(jnp.abs(pred - target), mask)
 
 
-def _gauss_kernel(dtype) -> Float[Array, " k"]:
-    x = jnp.arange(SSIM_WINDOW, dtype=dtype) - SSIM_WINDOW // 2
-    k = jnp.exp(-(x**2) / (2 * SSIM_SIGMA**2))
-    return k / jnp.sum(k)
+def _gauss_window(dtype=np.float32) -> np.ndarray:
+    """The SSIM window's normalised 1D Gaussian (11 taps, sigma 1.5), computed in float64."""
+    x = np.arange(SSIM_WINDOW, dtype=np.float64) - SSIM_WINDOW // 2
+    g = np.exp(-(x**2) / (2.0 * SSIM_SIGMA**2))
+    return (g / g.sum()).astype(dtype)
 
 
-#: Outputs per tile of the blur. Smaller tiles skip more of the Toeplitz matrix's zeros, but too small
-#: ones add matrix products: 16 beat 32 and 12 at 320x240 and was no slower at 640x480.
-_TILE = 16
-#: Full float32 products: GPUs' default TF32 matmul loses the variances, E[x^2] - E[x]^2.
-_EXACT = jax.lax.Precision.HIGHEST
+def filter_valid(x: Float[Array, "... h w"]) -> Float[Array, "... h-10 w-10"]:
+    """Separable 11x11 Gaussian filter keeping only the outputs whose window lies inside the image.
 
-
-def _toeplitz(dtype) -> Float[Array, "t t2"]:
-    """The 16 x 26 matrix that filters a tile of 16 outputs from its 16 + 10 inputs."""
-    k = _gauss_kernel(dtype)
-    i = jnp.arange(_TILE)[:, None]
-    j = jnp.arange(_TILE + SSIM_WINDOW - 1)[None, :]
-    return jnp.where((j - i >= 0) & (j - i < SSIM_WINDOW), k[jnp.clip(j - i, 0, SSIM_WINDOW - 1)], 0.0)
-
-
-def _tiles(x: Array, axis: int) -> Array:
-    """Zero-padded overlapping tiles of 16 + 10 along ``axis`` (-2 or -1): ``(..., nb, 26, m)`` or
-    ``(..., nb, 26)``."""
-    p = SSIM_WINDOW // 2
-    n = x.shape[axis]
-    nb = -(-n // _TILE)
-    pad = [(0, 0)] * x.ndim
-    pad[axis] = (p, (nb + 1) * _TILE - n - p)
-    xp = jnp.pad(x, pad)
-    take = lambda a, b: jax.lax.slice_in_dim(xp, a, b, axis=axis % x.ndim)  # noqa: E731
-    split = lambda y: y.reshape(y.shape[: axis % x.ndim] + (nb, _TILE) + y.shape[axis % x.ndim + 1 :])  # noqa: E731
-    main, halo = split(take(0, nb * _TILE)), split(take(_TILE, (nb + 1) * _TILE))
-    cut = (slice(None),) * (x.ndim + 1 + axis) + (slice(0, 2 * p),)
-    return jnp.concatenate([main, halo[cut]], axis=axis)
+    A sum of 11 shifted slices per axis, rows first: exact float32 arithmetic on any device (a
+    matrix product would be TF32 on GPUs), and on XLA:CPU the loss's forward and backward pass
+    are a third faster than with tiled products with a Toeplitz matrix."""
+    g = _gauss_window(x.dtype)
+    h, w = x.shape[-2:]
+    n = SSIM_WINDOW - 1
+    y = sum(g[i] * x[..., i : h - n + i, :] for i in range(SSIM_WINDOW))
+    return sum(g[i] * y[..., :, i : w - n + i] for i in range(SSIM_WINDOW))
 
 
 def _blur_same(x: Float[Array, "... h w"]) -> Float[Array, "... h w"]:
-    """Separable 11x11 Gaussian filter with zero padding ('same' output, as 3DGS's conv2d), as
-    tiled matrix products: each axis is cut into tiles of 16 (+10 halo) and every tile multiplied
-    by the same 16 x 26 Toeplitz matrix. On XLA:CPU this is far faster than a depthwise
-    convolution or 11 shifted slices. The filter is self-adjoint (a symmetric kernel with zero
-    padding), which the SSIM gradient uses."""
-    t = _toeplitz(x.dtype)
-    h, w = x.shape[-2:]
-    y = jnp.einsum("ij,...bjm->...bim", t, _tiles(x, -2), precision=_EXACT)
-    y = y.reshape(*x.shape[:-2], -1, w)[..., :h, :]
-    y = jnp.einsum("ij,...bj->...bi", t, _tiles(y, -1), precision=_EXACT)
-    return y.reshape(*x.shape[:-1], -1)[..., :w]
+    """The same filter with zero padding ('same' output, as 3DGS's conv2d). It is self-adjoint (a
+    symmetric kernel with zero padding), which the SSIM gradient uses."""
+    p = SSIM_WINDOW // 2
+    return filter_valid(jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(p, p), (p, p)]))
 
 
 def _ssim(mx, my, sxx, syy, sxy):
-    return ((2 * mx * my + _C1) * (2 * sxy + _C2)) / ((mx * mx + my * my + _C1) * (sxx + syy + _C2))
+    return ((2 * mx * my + SSIM_C1) * (2 * sxy + SSIM_C2)) / ((mx * mx + my * my + SSIM_C1) * (sxx + syy + SSIM_C2))
 
 
 class SSIMTarget(NamedTuple):
@@ -145,8 +122,8 @@ def _weighted_ssim_fwd(x, target, weight):
 def _weighted_ssim_bwd(res, g):
     x, y, weight, (mx, my, sxx, syy, sxy), s = res
     gw = g * weight / x.shape[0]
-    a1, a2 = 2 * mx * my + _C1, 2 * sxy + _C2
-    b1, b2 = mx * mx + my * my + _C1, sxx + syy + _C2
+    a1, a2 = 2 * mx * my + SSIM_C1, 2 * sxy + SSIM_C2
+    b1, b2 = mx * mx + my * my + SSIM_C1, sxx + syy + SSIM_C2
     g_sxy = gw * 2 * a1 / (b1 * b2)  # d s / d sxy
     g_var = -gw * s / b2  # d s / d sxx = d s / d syy
     # d s / d mx through s's own mx terms and through sxx = E[x^2] - mx^2, sxy = E[xy] - mx my.

@@ -28,6 +28,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float
 
+from sgad_jax.losses import SSIM_C1, SSIM_C2, SSIM_WINDOW, filter_valid
 from sgad_jax.eval.lpips_weights import LPIPSUnavailable, LPIPSWeights, unavailable_message, load_lpips_weights
 
 # --------------------------------------------------------------------------------------------- PSNR
@@ -99,32 +100,10 @@ def psnr(
 
 # ------------------------------------------------------------------------------------ SSIM, MS-SSIM
 
-SSIM_WINDOW = 11
-SSIM_SIGMA = 1.5
-_C1, _C2 = 0.01**2, 0.03**2
 MS_SSIM_WEIGHTS = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
 #: MS-SSIM needs every side larger than (window - 1) * 2^4 = 160 (pytorch_msssim asserts this), so
 #: that the coarsest of the 5 scales is still as large as the window.
 MS_SSIM_MIN_SIZE = (SSIM_WINDOW - 1) * 2 ** (len(MS_SSIM_WEIGHTS) - 1) + 1
-
-
-def _gauss_window() -> np.ndarray:
-    x = np.arange(SSIM_WINDOW, dtype=np.float64) - SSIM_WINDOW // 2
-    g = np.exp(-(x**2) / (2.0 * SSIM_SIGMA**2))
-    return (g / g.sum()).astype(np.float32)
-
-
-def _filter_valid(x: Float[Array, "... h w"]) -> Float[Array, "... h-10 w-10"]:
-    """Separable Gaussian filter keeping only the outputs whose window lies inside the image.
-
-    A sum of 11 shifted slices per axis: exact float32 arithmetic (no TF32 matmul on GPUs), and on
-    XLA:CPU much faster than a banded matmul or ``conv_general_dilated``.
-    """
-    g = _gauss_window()
-    h, w = x.shape[-2:]
-    n = SSIM_WINDOW - 1
-    y = sum(g[i] * x[..., i : h - n + i, :] for i in range(SSIM_WINDOW))
-    return sum(g[i] * y[..., :, i : w - n + i] for i in range(SSIM_WINDOW))
 
 
 def _ssim_cs(x: Float[Array, "c h w"], y: Float[Array, "c h w"]) -> tuple[Float[Array, " c"], Float[Array, " c"]]:
@@ -136,11 +115,11 @@ def _ssim_cs(x: Float[Array, "c h w"], y: Float[Array, "c h w"]) -> tuple[Float[
     """
     c = 0.5 * (jnp.mean(x, axis=(-2, -1), keepdims=True) + jnp.mean(y, axis=(-2, -1), keepdims=True))
     x, y = x - c, y - c
-    mx, my, exx, eyy, exy = _filter_valid(jnp.stack([x, y, x * x, y * y, x * y]))
+    mx, my, exx, eyy, exy = filter_valid(jnp.stack([x, y, x * x, y * y, x * y]))
     sxx, syy, sxy = exx - mx * mx, eyy - my * my, exy - mx * my
     mx, my = mx + c, my + c
-    cs = (2.0 * sxy + _C2) / (sxx + syy + _C2)
-    s = (2.0 * mx * my + _C1) / (mx * mx + my * my + _C1) * cs
+    cs = (2.0 * sxy + SSIM_C2) / (sxx + syy + SSIM_C2)
+    s = (2.0 * mx * my + SSIM_C1) / (mx * mx + my * my + SSIM_C1) * cs
     return jnp.mean(s, axis=(-2, -1)), jnp.mean(cs, axis=(-2, -1))
 
 
