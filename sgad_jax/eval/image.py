@@ -28,8 +28,8 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float
 
-from sgad_jax.losses import SSIM_C1, SSIM_C2, SSIM_WINDOW, filter_valid
 from sgad_jax.eval.lpips_weights import LPIPSUnavailable, LPIPSWeights, unavailable_message, load_lpips_weights
+from sgad_jax.losses import SSIM_C1, SSIM_C2, SSIM_WINDOW, filter_valid
 
 # --------------------------------------------------------------------------------------------- PSNR
 
