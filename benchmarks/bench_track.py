@@ -104,7 +104,8 @@ def _stage_times(tcfg, geom, depth, intr, T) -> dict:
 
         return (_median_ms(run(8), geom, points, T) - _median_ms(run(1), geom, points, T)) / 7
 
-    out = {"frame_points": _median_ms(jax.jit(gicp.frame_points, static_argnums=0), tcfg, depth, intr)}
+    # Both clouds, as the step extracts them (the tracked one and, with median depths, the one T receives).
+    out = {"frame_points": _median_ms(jax.jit(gicp.frame_clouds, static_argnums=0), tcfg, depth, intr)}
     for name, c in (("", 1), *(("_coarse", c) for c in tcfg.coarse[:1])):  # coarse: every c-th point
         points = jax.tree.map(lambda a, c=c: a[..., ::c], cloud)
         step = per_iteration(points, 1e9)
