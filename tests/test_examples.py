@@ -33,7 +33,7 @@ def test_pose_gradient_matches_finite_differences():
 def test_vmap_of_map_frame_equals_a_loop():
     r = _load("vmap_map_frame").main(frames=2, width=32, height=24, iterations=3, verbose=False)
     assert r["offset"].shape == (2, 24, 32)
-    assert r["max_abs_difference"] < 1e-5
+    assert r["max_abs_difference"] < 5e-5  # float32 rounding of two programs, carried on by Adam's steps
     assert (r["loss"][:, -1] < r["loss"][:, 0]).all()  # the batched fit does fit
 
 

@@ -208,8 +208,11 @@ def test_replica_gaussians_on_the_mesh(tmp_path):
     opaque = w.xyz[w.opacity > 0.5]
     assert len(opaque) > 10000
     margin = 0.05
-    samples = _mesh_samples(mesh_path, 0.002, opaque.min(0) - margin, opaque.max(0) + margin)
-    dist = spatial.cKDTree(samples).query(opaque, workers=1)[0]
+    # Samples 3 mm apart put at most ~2 mm between a point on the surface and the nearest sample;
+    # 20,000 of the Gaussians give the median to well under a millimetre.
+    samples = _mesh_samples(mesh_path, 0.003, opaque.min(0) - margin, opaque.max(0) + margin)
+    some = opaque[np.random.default_rng(0).permutation(len(opaque))[:20000]]
+    dist = spatial.cKDTree(samples).query(some, workers=1)[0]
     print(f"replica: {len(opaque)} opaque of {len(w)} Gaussians, distance to the mesh median {100 * np.median(dist):.3f} cm, "
           f"90th percentile {100 * np.percentile(dist, 90):.3f} cm")
     assert np.median(dist) < 0.01, np.median(dist)
