@@ -14,7 +14,7 @@ import pytest
 from sgad_jax.config import DataConfig
 from sgad_jax.io import datasets as ds
 from sgad_jax.config import ConfigError, SLAMConfig, apply_overrides
-from sgad_jax.io.base import DatasetError, add_depth_noise
+from sgad_jax.io.base import DatasetError, add_depth_noise, inpaint_depth
 from sgad_jax.io.datasets import (
     GenericDataset,
     ReplicaDataset,
@@ -576,6 +576,10 @@ def test_frames_read_ahead_in_order_and_fail_at_the_bad_frame(tmp_path):
     for s in got:
         want = d[s.index]
         assert np.array_equal(s.depth, want.depth) and np.array_equal(s.rgb, want.rgb)
+    assert not any("depth_filled" in vars(s) for s in got)  # inpainted only when first asked for
+    for s in d.frames(start=4, fill=True):  # ... or by the reading thread, for mapping
+        assert "depth_filled" in vars(s)
+        np.testing.assert_array_equal(s.depth_filled, inpaint_depth(s.depth))
     # Frame 3 is corrupt: it is read (and fails) while frame 1 is still being handed out, but the
     # error comes when its turn comes, after every frame before it.
     bad = root / "depth/0003.png"

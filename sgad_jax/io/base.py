@@ -293,9 +293,11 @@ class Dataset:
             inpaint=self.cfg.inpaint,
         )
 
-    def frames(self, start: int = 0, ahead: int = 2, *, skip_bad: bool = False):
+    def frames(self, start: int = 0, ahead: int = 2, *, skip_bad: bool = False, fill: bool = False):
         """``self[i]`` for ``i`` from ``start`` on, read on a background thread up to ``ahead``
-        frames before they are asked for, so that decoding overlaps the caller's work.
+        frames before they are asked for, so that decoding overlaps the caller's work; with
+        ``fill`` the thread also inpaints each frame's depth (:attr:`RGBDSample.depth_filled`,
+        which mapping needs), off the caller's path.
 
         A frame that cannot be read raises its :class:`DatasetError` when its turn comes, after
         every frame before it has been yielded; with ``skip_bad`` it is yielded as a
@@ -306,7 +308,7 @@ class Dataset:
             try:
                 while True:
                     while nxt < len(self) and len(pending) <= ahead:
-                        pending.append(pool.submit(self.__getitem__, nxt))
+                        pending.append(pool.submit(self._read_ahead, nxt, fill))
                         nxt += 1
                     if not pending:
                         return
@@ -321,6 +323,12 @@ class Dataset:
             finally:
                 for future in pending:
                     future.cancel()
+
+    def _read_ahead(self, i: int, fill: bool) -> RGBDSample:
+        sample = self[i]
+        if fill:
+            sample.depth_filled  # noqa: B018 (computed and cached now, on the reading thread)
+        return sample
 
     def describe(self, j: int, *, depth: bool = False) -> str:
         """A file or folder naming frame ``j`` (its depth image with ``depth``), for error
