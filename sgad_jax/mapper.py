@@ -168,7 +168,7 @@ class Mapper:
         desc = f"{kind} views" if kind else "frames between keyframes"
         for index in tqdm(indices, desc=desc, unit="view", disable=not self.main or len(indices) < 5, file=sys.stderr):
             out = self.scene.render(poses[index])
-            recs.append(self._score(index, host_frame(source(index)), out.rgb, np.asarray(splat.surface_depth(out)), kind=kind, mapped=False))
+            recs.append(self._score(index, host_frame(source(index), fill=False), out.rgb, np.asarray(splat.surface_depth(out)), kind=kind, mapped=False))
         return recs
 
     def finetune(self, iterations: int, poses: np.ndarray, source, seed: int) -> dict:
@@ -182,7 +182,7 @@ class Mapper:
             return {}
         params = {i: jax.tree.map(np.asarray, self.store.get(i)) for i in mapped}
         states = {i: jax.tree.map(np.asarray, scene.adam_init(params[i])) for i in mapped}
-        frames = functools.lru_cache(maxsize=64)(lambda i: host_frame(source(i)))  # training views, read again
+        frames = functools.lru_cache(maxsize=64)(lambda i: host_frame(source(i), fill=False))  # training views, read again
         rng = np.random.default_rng(seed)
         chosen_of = {i: self.scene.frames_for(poses[i]) for i in mapped}
         losses, t0 = [], time.perf_counter()

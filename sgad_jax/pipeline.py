@@ -174,7 +174,9 @@ def run(
     what = "tracking" if track_only else "tracking + mapping"
     bar = tqdm(total=len(ds), initial=start, desc=f"{what} {ds.name}", unit="frame", disable=not (progress and main), file=sys.stderr)
     try:
-        for sample in ds.frames(start, skip_bad=True, fill=not track_only):
+        # `fill`: the frames the system will map, by run index (a skipped frame shifts the system's
+        # count; a wrong guess only moves a frame's inpainting back to the main thread or wastes it).
+        for sample in ds.frames(start, skip_bad=True, fill=system.maps):
             i = sample.index
             problem = sample.reason if isinstance(sample, BadFrame) else _timestamp_problem(ds, sample, system.stamps)
             if problem and on_bad_frame == "stop":

@@ -139,27 +139,36 @@ class SLAM:
             TrackingDiverged: the pose came out non-finite despite the fallbacks (a bug); the system
                 cannot continue.
         """
-        frame = None if self.mapper is None else host_frame(sample)
+        index = len(self.poses)
+        frame = None if self.mapper is None else host_frame(sample, fill=self.maps(index))
         if self.cfg.track.hold_repeated_depth and repeats(sample.depth, self._last_depth):
             pose = self.poses[-1]
         else:
             pose = self._track(sample, frame)
         self._last_depth = sample.depth
-        index = len(self.poses)
         self.poses.append(pose)
         self.stamps.append(float(sample.timestamp))
         self.depth_stamps.append(float(sample.depth_timestamp))
-        if self.holdout_every and index > 0 and index % self.holdout_every == 0:
+        if self.held_out(index):
             self.holdout.append(index)
             if self.source is None and self.mapper is not None:
                 self._held[index] = sample
-        elif self.mapper is not None and index % self.cfg.map.every:
+        elif self.mapper is not None and not self.maps(index):
             self.between.append(index)
             if self.source is None:
                 self._held[index] = sample
         elif self.mapper is not None:
             self.state = dataclasses.replace(self.state, recent=self.mapper.push(self.state.recent, index, frame, lie.from_matrix(pose)))
         return pose
+
+    def held_out(self, index: int) -> bool:
+        """Whether the frame of run index ``index`` is held out (tracked, never mapped)."""
+        return bool(self.holdout_every) and index > 0 and index % self.holdout_every == 0
+
+    def maps(self, index: int) -> bool:
+        """Whether the frame of run index ``index`` is mapped: mapping runs, the frame is not held
+        out, and it is a keyframe (``map.every``)."""
+        return self.mapper is not None and not self.held_out(index) and index % self.cfg.map.every == 0
 
     def _flush(self) -> None:
         """Map the queued frames."""

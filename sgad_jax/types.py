@@ -90,9 +90,11 @@ def make_frame(rgb, depth, depth_filled=None) -> Frame:
     )
 
 
-def host_frame(sample) -> Frame:
-    """The frame of a sample (``rgb``, ``depth``, ``depth_filled``) as host (numpy) arrays."""
-    return jax.tree.map(np.asarray, make_frame(sample.rgb, sample.depth, sample.depth_filled))
+def host_frame(sample, *, fill: bool = True) -> Frame:
+    """The frame of a sample (``rgb``, ``depth``, ``depth_filled``) as host (numpy) arrays; without
+    ``fill`` its ``depth_filled`` is the measured depth (a view that is scored or fitted to, not
+    mapped, needs no inpainting)."""
+    return jax.tree.map(np.asarray, make_frame(sample.rgb, sample.depth, sample.depth_filled if fill else None))
 
 
 @_pytree

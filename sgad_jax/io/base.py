@@ -293,11 +293,11 @@ class Dataset:
             inpaint=self.cfg.inpaint,
         )
 
-    def frames(self, start: int = 0, ahead: int = 2, *, skip_bad: bool = False, fill: bool = False):
+    def frames(self, start: int = 0, ahead: int = 2, *, skip_bad: bool = False, fill=None):
         """``self[i]`` for ``i`` from ``start`` on, read on a background thread up to ``ahead``
-        frames before they are asked for, so that decoding overlaps the caller's work; with
-        ``fill`` the thread also inpaints each frame's depth (:attr:`RGBDSample.depth_filled`,
-        which mapping needs), off the caller's path.
+        frames before they are asked for, so that decoding overlaps the caller's work; for the
+        frames ``i`` with ``fill(i)`` true the thread also inpaints the depth
+        (:attr:`RGBDSample.depth_filled`, which mapping needs), off the caller's path.
 
         A frame that cannot be read raises its :class:`DatasetError` when its turn comes, after
         every frame before it has been yielded; with ``skip_bad`` it is yielded as a
@@ -324,9 +324,9 @@ class Dataset:
                 for future in pending:
                     future.cancel()
 
-    def _read_ahead(self, i: int, fill: bool) -> RGBDSample:
+    def _read_ahead(self, i: int, fill) -> RGBDSample:
         sample = self[i]
-        if fill:
+        if fill is not None and fill(i):
             sample.depth_filled  # noqa: B018 (computed and cached now, on the reading thread)
         return sample
 
