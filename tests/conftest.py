@@ -13,6 +13,9 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     _cache = tempfile.mkdtemp(prefix="sgad-jax-tests-xla-")
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)
+# Every program, not only those that took a second to compile (JAX's default): the many small ones
+# are compiled again by each CLI subprocess and by each test module after its caches are cleared.
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 # Most of the suite's time is XLA:CPU compiling the unrolled renderer for tiny inputs. Its older loop
 # emitters, and LLVM without its optimisation passes, compile it in far less time and compute the
