@@ -17,8 +17,8 @@ from sgad_jax.distributed import BatchMapper
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import read_tum_trajectory
 from sgad_jax.io.store import GaussianStore
-from sgad_jax.mapping import init_gaussians
 from sgad_jax.pipeline import run
+from sgad_jax.mapping import init_gaussians
 from sgad_jax.system import SLAM, initial_pose
 from sgad_jax.types import host_frame
 from sgad_jax.types import PixelGaussians
@@ -80,9 +80,10 @@ def test_batch_mapper_matches_map_step():
 @pytest.fixture(scope="module")
 def reference_run(tmp_path_factory):
     """The uninterrupted one-device CLI run of the tiny scene: (poses, metrics), shared by the
-    tests that compare other ways of running it against it."""
+    tests that compare other ways of running it against it. In this process, so that the runs
+    here that need no process of their own reuse its compiled programs."""
     out = tmp_path_factory.mktemp("reference") / "one"
-    _finish(_cli("--out", str(out), "--devices", "1"))
+    assert main(["run", "--quiet", *TINY_ARGS, "--out", str(out), "--devices", "1"]) == 0
     return _results(out)
 
 
@@ -153,7 +154,7 @@ def test_resume_after_sigkill_matches_uninterrupted_run(tmp_path, reference_run)
     assert not (out / "gaussians" / "frame_000005.npz").exists()
     newest = _steps(out)[-1]
     assert newest > 2  # the resumed run committed a checkpoint of its own before frame 5
-    _finish(_cli("--out", str(out), "--checkpoint-every", "2", "--resume"))
+    assert main(["run", "--quiet", *TINY_ARGS, "--out", str(out), "--checkpoint-every", "2", "--resume"]) == 0
     poses, m = _results(out)
     np.testing.assert_allclose(poses, ref_poses, atol=1e-6)
     for key in ("ate_rmse_cm", "psnr", "ssim", "lpips", "depth_l1_cm", "mapped_frames", "frames", "gaussians_total"):
@@ -164,8 +165,8 @@ def test_resume_after_sigkill_matches_uninterrupted_run(tmp_path, reference_run)
 
 
 @pytest.mark.slow
-def test_resume_refuses_another_config_and_starts_over_without_checkpoint(tmp_path, capsys):
-    # in this process: the three runs share their compiled programs (a kill is not needed here)
+def test_resume_refuses_another_config_and_starts_over_without_checkpoint(tmp_path, capsys, reference_run):
+    # in this process: the runs share the reference run's compiled programs (a kill is not needed here)
     cli = lambda *args: (main(["run", "--quiet", *TINY_ARGS, *args]), capsys.readouterr().err)  # noqa: E731
     out = tmp_path / "run"
     assert cli("--out", str(out), "--checkpoint-every", "2", "--max-frames", "3")[0] == 0
@@ -211,17 +212,17 @@ def test_gaussian_store_spills_beyond_budget(tmp_path):
 
 
 @pytest.mark.slow
-def test_streaming_api_matches_run(tmp_path):
+def test_streaming_api_matches_run(reference_run):
     """Feeding frames one at a time to `SLAM` gives `run`'s trajectory and scores."""
+    ref_poses, ref = reference_run
     cfg = resolve_config(None, None, overrides=TINY)
-    ref = run(cfg, tmp_path / "run", progress=False)
     ds = open_dataset(cfg.data)
     system = SLAM(cfg, ds.intrinsics, initial_pose=initial_pose(ds))
     poses = np.stack([system.add(ds[i]) for i in range(len(ds))])
     m = system.finish()
-    np.testing.assert_allclose(poses, ref.poses, atol=1e-6)
+    np.testing.assert_allclose(poses, ref_poses, atol=1e-6)
     for key in ("psnr", "ssim", "depth_l1_cm", "mapped_frames"):
-        assert m[key] == pytest.approx(ref.metrics[key], abs=1e-6)
+        assert m[key] == pytest.approx(ref[key], abs=1e-6)
     # the stored Gaussians of a frame render its view as scored
     g = system.mapper.store.get(3)
     assert g.rgb.shape == (60, 80, 3) and np.isfinite(g.offset).all()
