@@ -23,7 +23,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from sgad_jax import slam, splat
+from sgad_jax import programs, slam, splat
 from sgad_jax.config import ConfigError, MapConfig
 from sgad_jax.types import Intrinsics
 
@@ -80,6 +80,7 @@ class BatchMapper:
         self.mesh = frames_mesh() if mesh is None else mesh
         self.size = self.mesh.size
         self.sharding = NamedSharding(self.mesh, P(AXIS))
+        self.cfg, self.intr = cfg, intr
         step = functools.partial(slam.map_step, cfg, intr=intr)
 
         def local(frame, pose, neighbour_gaussians, neighbours, neighbour_poses, present):
@@ -98,7 +99,10 @@ class BatchMapper:
         if self._compiled is not None:
             return 0.0
         t0 = time.perf_counter()
-        self._compiled = self._fn.lower(*self._global(batch)).compile()
+        args = self._global(batch)
+        devices = tuple(d.id for d in self.mesh.devices.flat)
+        key = ("map", self.cfg, self.intr.as_tuple(), self.intr.width, self.intr.height, devices, programs.signature(args))
+        self._compiled = programs.compiled(key, lambda: self._fn.lower(*args))
         return time.perf_counter() - t0
 
     def __call__(self, *batch):

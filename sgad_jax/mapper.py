@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from sgad_jax import lie, mapping, scene, slam, splat
+from sgad_jax import lie, mapping, programs, scene, slam, splat
 from sgad_jax.config import ConfigError, SLAMConfig
 from sgad_jax.distributed import BatchMapper
 from sgad_jax.eval import image, lpips_weights
@@ -84,7 +84,8 @@ class Mapper:
                 g_prev = mapping.init_gaussians(prev, intr)
                 return mapping.refine_pose(cfg, g_prev, pose_prev, frame, guess, intr, iterations=its)
 
-            self.refine = jax.jit(fn).lower(*args).compile()
+            key = ("refine", cfg, intr.as_tuple(), intr.width, intr.height, its, programs.signature(args))
+            self.refine = programs.compiled(key, lambda: jax.jit(fn).lower(*args))
             self.compile_s += time.perf_counter() - t0
         return self.refine(*args)
 

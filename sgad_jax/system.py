@@ -13,7 +13,7 @@ import time
 import jax
 import numpy as np
 
-from sgad_jax import checkpoint, lie, paging, slam
+from sgad_jax import checkpoint, lie, paging, programs, slam
 from sgad_jax.config import ConfigError, SLAMConfig
 from sgad_jax.io.base import Dataset, DatasetError
 from sgad_jax.mapper import Mapper, means
@@ -34,7 +34,8 @@ def compile_step(tcfg, state: slam.SLAMState, depth, intr, dt, guess=None):
     are donated (the geometry set is updated in place).
     """
     step = jax.jit(functools.partial(slam.track_step, differentiable=False), static_argnums=0, donate_argnums=1)
-    return step.lower(tcfg, state, depth, intr, dt, guess).compile()
+    args = (state, depth, intr, dt, guess)
+    return programs.compiled(("track", tcfg, programs.signature(args)), lambda: step.lower(tcfg, *args))
 
 
 def repeats(depth: np.ndarray, previous: np.ndarray | None) -> bool:

@@ -54,5 +54,8 @@ def _release_compiled_programs():
 
     import jax
 
+    from sgad_jax import programs
+
     jax.clear_caches()
+    programs.clear()
     gc.collect()

@@ -11,7 +11,7 @@ import jax
 import numpy as np
 import pytest
 
-from sgad_jax import lie, slam, splat
+from sgad_jax import lie, programs, slam, splat
 from sgad_jax.cli import main, resolve_config
 from sgad_jax.distributed import BatchMapper
 from sgad_jax.io.datasets import open_dataset
@@ -213,13 +213,16 @@ def test_gaussian_store_spills_beyond_budget(tmp_path):
 
 @pytest.mark.slow
 def test_streaming_api_matches_run(reference_run):
-    """Feeding frames one at a time to `SLAM` gives `run`'s trajectory and scores."""
+    """Feeding frames one at a time to `SLAM` gives `run`'s trajectory and scores, with the
+    programs the run compiled in this process (none compiled again)."""
     ref_poses, ref = reference_run
     cfg = resolve_config(None, None, overrides=TINY)
     ds = open_dataset(cfg.data)
+    kept = dict(programs._PROGRAMS)
     system = SLAM(cfg, ds.intrinsics, initial_pose=initial_pose(ds))
     poses = np.stack([system.add(ds[i]) for i in range(len(ds))])
     m = system.finish()
+    assert programs._PROGRAMS.keys() == kept.keys() and system._step is kept[next(k for k in kept if k[0] == "track")]
     np.testing.assert_allclose(poses, ref_poses, atol=1e-6)
     for key in ("psnr", "ssim", "depth_l1_cm", "mapped_frames"):
         assert m[key] == pytest.approx(ref[key], abs=1e-6)
