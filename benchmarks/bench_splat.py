@@ -22,8 +22,9 @@ Usage::
 Prints one JSON object with ``own_640x480_fwd_ms``, ``own_640x480_fwd_bwd_ms``,
 ``own_320x240_fwd_ms``, ``own_320x240_fwd_bwd_ms``, ``neighbours2_640x480_fwd_ms``,
 ``neighbours2_640x480_fwd_bwd_ms``, ``neighbours2_pipeline_640x480_fwd_ms``,
-``neighbours2_pipeline_640x480_fwd_bwd_ms``, ``scene_640x480_k8_fwd_ms``, ``map_frame_640x480_s``, ``map_frame_320x240_s``, ``compile_s`` (total; ``compile_s_by_entry`` each) and the
-settings. Without ``--data`` (or when the folder is missing) the built-in synthetic scene is used.
+``neighbours2_pipeline_640x480_fwd_bwd_ms``, ``scene_640x480_k8_fwd_ms``, ``map_frame_640x480_s``, ``map_frame_320x240_s``,
+``map_s_per_input_frame_640x480`` (``map_frame_640x480_s`` over the data's default preset's ``map.every``), ``compile_s``
+(total; ``compile_s_by_entry`` each) and the settings. Without ``--data`` (or when the folder is missing) the built-in synthetic scene is used.
 """
 
 from __future__ import annotations
@@ -87,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from sgad_jax import lie, scene, slam, splat
     from sgad_jax import mapping
+    from sgad_jax.cli import resolve_config
     from sgad_jax.config import DataConfig, MapConfig
     from sgad_jax.io.datasets import open_dataset
     from sgad_jax.types import make_frame
@@ -152,6 +154,9 @@ def main(argv: list[str] | None = None) -> int:
         key = f"map_frame_{size}"
         compile_s[key], t = _timed(step, frames[2], poses[2], nb_gs, nb, nb_poses, repeats=max(1, args.repeats // 2))
         out[key + "_s"] = t
+        if downscale == 1:  # per input frame at the data's default preset's keyframe spacing
+            out["map_every"] = resolve_config(None, path or None).map.every
+            out[f"map_s_per_input_frame_{size}"] = t / out["map_every"]
     out["compile_s"] = sum(compile_s.values())
     out["compile_s_by_entry"] = compile_s
     print(json.dumps(out, indent=2))

@@ -231,7 +231,7 @@ def test_run_state_scans_over_a_sequence_like_the_host_loop():
     """The run state is one pytree and the step is pure: `lax.scan` of tracking and queueing each
     frame for mapping (`slam.track_step`, `slam.remember`) over a synthetic sequence gives the host
     loop's poses and leaves the same recent frames (`sgad_jax.system.SLAM`, mapping included)."""
-    cfg = resolve_config(None, None, overrides=["data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=6", "map.iterations=2"])
+    cfg = resolve_config(None, None, overrides=["data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=6", "map.iterations=3"])
     ds = SyntheticDataset(cfg.data)
     system = SLAM(cfg, ds.intrinsics, initial_pose=initial_pose(ds))
     host_poses = np.stack([system.add(ds[i]) for i in range(len(ds))])
