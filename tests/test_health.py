@@ -5,7 +5,6 @@ geometry set built by inserting every frame at its ground-truth pose.
 """
 
 import dataclasses
-import functools
 import re
 
 import jax
@@ -17,14 +16,19 @@ from scipy.spatial import cKDTree
 from sgad_jax import geometry, gicp, lie, slam
 from sgad_jax.config import DataConfig, SLAMConfig, SyntheticConfig, TrackConfig
 from sgad_jax.io.synthetic import SyntheticDataset, jump_pose
-from sgad_jax.system import SLAM
+from sgad_jax.system import SLAM, compile_step
 from sgad_jax.track import transform_cloud
 from sgad_jax.types import FAIL_DEGENERATE, FAIL_INLIERS, FAIL_JUMP, FAIL_NONFINITE, TrackInfo, empty_geometry
 
 # 320 x 240 at stride 4: T dense enough for 2 cm voxels (at 80 x 60 even clean frames lack matches).
 CFG = TrackConfig(stride=4, k=15, capacity=1 << 16)
 JUMP = 5  # the frame from which the camera is displaced by 20 cm and 10 degrees
-STEP = jax.jit(functools.partial(slam.track_step, differentiable=False), static_argnums=0)
+
+
+def STEP(cfg, state, depth, intr, dt, guess=None):
+    """The host loop's compiled tracking step (kept per process: the `SLAM` runs here reuse it).
+    It takes over ``state``'s buffers."""
+    return compile_step(cfg, state, depth, intr, dt, guess)(state, depth, intr, dt, guess)
 
 
 def _room(jump_frame: int = 0, frames: int = 9) -> SyntheticDataset:
