@@ -10,7 +10,7 @@ import pytest
 
 from conftest import shared
 from sgad_jax import gicp, lie, pipeline, slam
-from sgad_jax.system import SLAM, initial_pose
+from sgad_jax.system import SLAM, compile_step, initial_pose
 from sgad_jax.cli import resolve_config
 from sgad_jax.config import ConfigError, DataConfig, SyntheticConfig, TrackConfig
 from sgad_jax.io.synthetic import SyntheticDataset
@@ -24,9 +24,10 @@ CFG = TrackConfig(stride=4, k=15, capacity=1 << 15, max_iterations=50, tolerance
 def scene():
     ds = SyntheticDataset(DataConfig(layout="synthetic", synthetic=SyntheticConfig(frames=8, width=320, height=240)))
     T0 = lie.from_matrix(ds.gt_poses[0])
-    state = slam.init_state(CFG, T0)
+    state = slam.init_state(CFG, lie.from_matrix(ds.gt_poses[0]))  # not T0: the step takes over the state's buffers
     depth0 = jnp.asarray(ds[0].depth)
-    state, T, _, _ = slam.track_step(CFG, state, depth0, ds.intrinsics, jnp.float32(0.0))
+    # the host loop's compiled step (kept per process: test_repeated_depth_image's SLAM reuses it)
+    state, T, _, _ = compile_step(CFG, state, depth0, ds.intrinsics, jnp.float32(0.0))(state, depth0, ds.intrinsics, jnp.float32(0.0), None)
     cloud0 = gicp.frame_points(CFG, depth0, ds.intrinsics)
     return ds, state.geom, cloud0, T0
 
