@@ -17,8 +17,8 @@ from sgad_jax.distributed import BatchMapper
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import read_tum_trajectory
 from sgad_jax.io.store import GaussianStore
-from sgad_jax.pipeline import run
 from sgad_jax.mapping import init_gaussians
+from sgad_jax.pipeline import run
 from sgad_jax.system import SLAM, initial_pose
 from sgad_jax.types import host_frame
 from sgad_jax.types import PixelGaussians
