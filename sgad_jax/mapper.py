@@ -84,7 +84,7 @@ class Mapper:
                 g_prev = mapping.init_gaussians(prev, intr)
                 return mapping.refine_pose(cfg, g_prev, pose_prev, frame, guess, intr, iterations=its)
 
-            key = ("refine", cfg, intr.as_tuple(), intr.width, intr.height, its, programs.signature(args))
+            key = ("refine", cfg, intr.as_tuple(), intr.width, intr.height, programs.signature(args))
             self.refine = programs.compiled(key, lambda: jax.jit(fn).lower(*args))
             self.compile_s += time.perf_counter() - t0
         return self.refine(*args)
