@@ -168,29 +168,41 @@ def track_step(
     # The share of matched points depends on how dense they are against the voxels (low-resolution
     # images match few), so a frame is judged against the share of the last accepted one.
     floor = cfg.min_inlier_share * state.inlier_share
-    T, info = solver(cfg, state.geom, cloud, guess)
-    info = dataclasses.replace(info, inlier_floor=floor)
-    jump = _jump(T, guess)
     judged = cfg.judge & (state.geom.count > 0)  # the first frame has nothing to be judged against
-    # A non-finite pose fails even unjudged: NaN must never reach a pose or the state.
-    failure = jnp.where(judged, judge(cfg, info, T, jump, cfg.max_jump), jnp.where(_finite(T), 0, FAIL_NONFINITE))
-    info = dataclasses.replace(info, failure=failure, jump=jnp.where(jnp.isfinite(jump), jump, jnp.inf))
 
-    def recover(_):
-        k = jax.random.fold_in(jax.random.key(0), state.geom.count) if key is None else key
-        T0 = relocalise(cfg, state.geom, cloud, guess, key=k)
-        T1, info1 = solver(cfg, state.geom, cloud, T0)
-        info1 = dataclasses.replace(info1, inlier_floor=floor)
-        bad = judge(cfg, info1, T1, _jump(T1, T0), cfg.max_jump) | judge(cfg, info1, T1, _jump(T1, guess), cfg.relocalise_max_move)
-        return _select(bad == 0, T1, guess), bad == 0, info.iterations + info1.iterations, _share(info1)
+    def first_failure(T, info):
+        # A non-finite pose fails even unjudged: NaN must never reach a pose or the state.
+        return jnp.where(judged, judge(cfg, info, T, _jump(T, guess), cfg.max_jump), jnp.where(_finite(T), 0, FAIL_NONFINITE))
 
-    def keep(_):
-        return _select(failure == 0, T, guess), jnp.zeros((), bool), info.iterations, _share(info)
+    def solve_from(start):
+        T, info = solver(cfg, state.geom, cloud, start)
+        return T, dataclasses.replace(info, inlier_floor=floor)
 
     if cfg.relocalise:
-        T, recovered, iterations, share = jax.lax.cond(failure != 0, recover, keep, None)
+        # Two attempts in a loop, so that the solver is in the program once (it is most of the
+        # step's compile time): from the guess, then, only after a failure, from the relocalised pose.
+        no_info = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(solve_from, guess)[1])
+
+        def attempt(failed, second):
+            k = jax.random.fold_in(jax.random.key(0), state.geom.count) if key is None else key
+            start = jax.lax.cond(second & failed, lambda: relocalise(cfg, state.geom, cloud, guess, key=k), lambda: guess)
+            T, info = jax.lax.cond(second & ~failed, lambda: (start, no_info), lambda: solve_from(start))
+            return failed | (~second & (first_failure(T, info) != 0)), (start, T, info)
+
+        _, tried = jax.lax.scan(attempt, jnp.zeros((), bool), jnp.array([False, True]))
+        (_, T, info), (T0, T1, info1) = (jax.tree.map(lambda a, i=i: a[i], tried) for i in (0, 1))
     else:
-        T, recovered, iterations, share = keep(None)
+        T, info = solve_from(guess)
+    jump = _jump(T, guess)
+    failure = first_failure(T, info)
+    info = dataclasses.replace(info, failure=failure, jump=jnp.where(jnp.isfinite(jump), jump, jnp.inf))
+    iterations, share, recovered = info.iterations, _share(info), jnp.zeros((), bool)
+    if cfg.relocalise:
+        bad = judge(cfg, info1, T1, _jump(T1, T0), cfg.max_jump) | judge(cfg, info1, T1, _jump(T1, guess), cfg.relocalise_max_move)
+        recovered = (failure != 0) & (bad == 0)
+        iterations = iterations + info1.iterations  # 0 when the second attempt solved nothing
+        share = jnp.where(failure != 0, _share(info1), share)
+    T = _select(failure == 0, T, _select(recovered, T1, guess) if cfg.relocalise else guess)
     info = dataclasses.replace(info, recovered=recovered, iterations=iterations)
     healthy = failure == 0
     accepted = healthy | recovered
