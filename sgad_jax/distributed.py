@@ -83,9 +83,11 @@ class BatchMapper:
         self.cfg, self.intr = cfg, intr
         step = functools.partial(slam.map_step, cfg, intr=intr)
 
-        def local(frame, pose, neighbour_gaussians, neighbours, neighbour_poses, present):
-            g, out, _ = jax.vmap(step)(frame, pose, neighbour_gaussians, neighbours, neighbour_poses, present)
-            return g, out.rgb, splat.surface_depth(out)
+        def local(*batch):
+            # One frame per device: the step on it directly (a vmap over an axis of one would
+            # trace the whole step a second time to batch it).
+            g, out, _ = step(*jax.tree.map(lambda x: x[0], batch))
+            return jax.tree.map(lambda x: x[None], (g, out.rgb, splat.surface_depth(out)))
 
         self._fn = jax.jit(jax.shard_map(local, mesh=self.mesh, in_specs=P(AXIS), out_specs=P(AXIS)))
         self._compiled = None
