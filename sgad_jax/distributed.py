@@ -93,6 +93,9 @@ class BatchMapper:
         self._compiled = None
 
     def _global(self, host):
+        n = {len(x) for x in jax.tree.leaves(host)}
+        if n != {self.size}:  # each device maps exactly one frame: another length would be cut short
+            raise ValueError(f"BatchMapper on {self.size} device(s) takes batches of {self.size} frames, got {sorted(n)}")
         return jax.tree.map(lambda x: jax.make_array_from_callback(x.shape, self.sharding, lambda idx: x[idx]), host)
 
     def compile(self, *batch) -> float:

@@ -182,9 +182,9 @@ def track_step(
         # Two attempts in a loop, so that the solver is in the program once (it is most of the
         # step's compile time): from the guess, then, only after a failure, from the relocalised pose.
         no_info = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(solve_from, guess)[1])
+        k = jax.random.fold_in(jax.random.key(0), state.geom.count) if key is None else key
 
         def attempt(failed, second):
-            k = jax.random.fold_in(jax.random.key(0), state.geom.count) if key is None else key
             start = jax.lax.cond(second & failed, lambda: relocalise(cfg, state.geom, cloud, guess, key=k), lambda: guess)
             T, info = jax.lax.cond(second & ~failed, lambda: (start, no_info), lambda: solve_from(start))
             return failed | (~second & (first_failure(T, info) != 0)), (start, T, info)

@@ -67,6 +67,9 @@ def test_batch_mapper_matches_map_step():
     present = np.array([True, False])
     batch = [jax.tree.map(lambda x: x[None], t) for t in (frames[2], poses[2], nb_gs, nb, nb_poses, present)]
     mapper = BatchMapper(cfg.map, intr)
+    two = [jax.tree.map(lambda x: np.concatenate([x, x]), t) for t in batch]
+    with pytest.raises(ValueError, match="batches of 1 frames, got \\[2\\]"):  # not silently cut to one
+        mapper(*two)
     gs, rgb, depth = mapper(*batch)
     g_ref, out_ref, _ = jax.jit(lambda *a: slam.map_step(cfg.map, *a, intr))(frames[2], poses[2], nb_gs, nb, nb_poses, present)
     # Two programs compiled apart round differently in float32, and Adam's normalised steps carry a
