@@ -149,7 +149,7 @@ def track_step(
     With ``cfg.judge`` the solved pose is judged (:func:`judge`: finite, inlier share against
     ``cfg.min_inlier_share`` times the last accepted frame's, jump from the guess, conditioning).
     A failed pose is relocalised (:func:`sgad_jax.track.relocalise`, then GICP from its result,
-    judged again, ``cfg.relocalise``); only on that branch of a ``lax.cond``, so healthy frames
+    judged again, ``cfg.relocalise``; not a frame without depth to match); only on that branch of a ``lax.cond``, so healthy frames
     pay nothing for it. If that fails too, the frame keeps the guess (the previous pose if the
     guess is not finite), adds nothing to T and leaves the velocity as it was. A relocalised
     frame keeps the velocity too (its jump is no motion to extrapolate). A non-finite pose is a
@@ -184,12 +184,15 @@ def track_step(
         no_info = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(solve_from, guess)[1])
         k = jax.random.fold_in(jax.random.key(0), state.geom.count) if key is None else key
 
-        def attempt(failed, second):
-            start = jax.lax.cond(second & failed, lambda: relocalise(cfg, state.geom, cloud, guess, key=k), lambda: guess)
-            T, info = jax.lax.cond(second & ~failed, lambda: (start, no_info), lambda: solve_from(start))
-            return failed | (~second & (first_failure(T, info) != 0)), (start, T, info)
+        # A frame without points to match (all depth missing) has nothing to relocalise.
+        has_points = jnp.sum(cloud.valid) >= 6
 
-        _, tried = jax.lax.scan(attempt, jnp.zeros((), bool), jnp.array([False, True]))
+        def attempt(retry, second):
+            start = jax.lax.cond(second & retry, lambda: relocalise(cfg, state.geom, cloud, guess, key=k), lambda: guess)
+            T, info = jax.lax.cond(second & ~retry, lambda: (start, no_info), lambda: solve_from(start))
+            return retry | (~second & has_points & (first_failure(T, info) != 0)), (start, T, info)
+
+        retried, tried = jax.lax.scan(attempt, jnp.zeros((), bool), jnp.array([False, True]))
         (_, T, info), (T0, T1, info1) = (jax.tree.map(lambda a, i=i: a[i], tried) for i in (0, 1))
     else:
         T, info = solve_from(guess)
@@ -199,7 +202,7 @@ def track_step(
     iterations, share, recovered = info.iterations, _share(info), jnp.zeros((), bool)
     if cfg.relocalise:
         bad = judge(cfg, info1, T1, _jump(T1, T0), cfg.max_jump) | judge(cfg, info1, T1, _jump(T1, guess), cfg.relocalise_max_move)
-        recovered = (failure != 0) & (bad == 0)
+        recovered = retried & (bad == 0)
         iterations = iterations + info1.iterations  # 0 when the second attempt solved nothing
         share = jnp.where(failure != 0, _share(info1), share)
     T = _select(failure == 0, T, _select(recovered, T1, guess) if cfg.relocalise else guess)

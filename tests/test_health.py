@@ -21,7 +21,8 @@ from sgad_jax.track import transform_cloud
 from sgad_jax.types import FAIL_DEGENERATE, FAIL_INLIERS, FAIL_JUMP, FAIL_NONFINITE, TrackInfo, empty_geometry
 
 # 320 x 240 at stride 4: T dense enough for 2 cm voxels (at 80 x 60 even clean frames lack matches).
-CFG = TrackConfig(stride=4, k=15, capacity=1 << 16)
+# test_track's config: the compiled step comes from the shared cache.
+CFG = TrackConfig(stride=4, k=15, capacity=1 << 16, max_iterations=50, tolerance=1e-6)
 JUMP = 5  # the frame from which the camera is displaced by 20 cm and 10 degrees
 
 

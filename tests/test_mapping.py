@@ -161,7 +161,8 @@ def test_loss_gradients_match_finite_differences(room, view):
             return mapping.view_loss(cfg, dataclasses.replace(g, offset=offset), lie.exp(xi) @ pose, views, view, intr64, own_at_pose=False)
 
         xi0 = jnp.zeros(6)
-        g_off, g_xi = jax.grad(loss, argnums=(0, 1))(g.offset, xi0)
+        g_off, g_xi = jax.jit(jax.grad(loss, argnums=(0, 1)))(g.offset, xi0)
+        loss = jax.jit(loss)  # evaluated 14 times: one program, not each operation compiled apart
         d_off = jnp.asarray(rng.normal(size=g.offset.shape))
         # Small steps: compositing order jumps where two Gaussians' depths cross; with 1e-8 steps
         # the chance that any of the ~10^4 neighbouring pairs crosses is about 1%.

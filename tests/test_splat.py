@@ -54,6 +54,14 @@ def _cotangent(out: splat.Render, seed: int) -> splat.Render:
     return jax.tree.map(lambda x: jnp.asarray(rng.normal(size=x.shape)), out)
 
 
+def _vjp(f, args, seed):
+    """``f(*args)`` and its vector-Jacobian product for a random cotangent, each one compiled
+    program (run op by op, the renderers compile hundreds of small ones)."""
+    out = jax.jit(f)(*args)
+    ct = _cotangent(out, seed)
+    return out, jax.jit(lambda *a: jax.vjp(f, *a)[1](ct))(*args)
+
+
 def _max_per_slot(g, poses, view) -> int:
     attrs = splat.project_frames(g, poses, view, _intr())
     u, v = (np.round(np.asarray(attrs[i])).astype(int) for i in (0, 1))
@@ -112,10 +120,7 @@ def test_vjp_matches_reference_including_pose(band, monkeypatch):
         return splat_ref.render(g, moved(eta, poses), lie.exp(xi) @ view, intr)
 
     args = (g, jnp.zeros(6), jnp.zeros((2, 6)), _intr())
-    out, vjp_fast = jax.vjp(fast, *args)
-    _, vjp_ref = jax.vjp(ref, *args)
-    ct = _cotangent(out, 8)
-    gf, gr = vjp_fast(ct), vjp_ref(ct)
+    (_, gf), (_, gr) = _vjp(fast, args, 8), _vjp(ref, args, 8)
     assert float(jnp.abs(gr[1]).max()) > 1e-3  # the pose gradients are not trivially zero
     assert float(jnp.abs(gr[2]).max()) > 1e-3
     assert min(abs(float(x)) for x in jax.tree.leaves(gr[3])) > 1e-3  # nor those of fx, fy, cx, cy
@@ -142,11 +147,8 @@ def test_own_view_vjp_matches_reference_for_a_nearby_view(band, monkeypatch):
 
     xi = jnp.zeros(6)
     eta = jnp.full(6, 1e-3)  # the frame's own pose slightly off its viewing pose
-    out, vf = jax.vjp(fast, g1, xi, eta)
-    ref_out, vr = jax.vjp(ref, g1, xi, eta)
+    (out, gf), (ref_out, gr) = _vjp(fast, (g1, xi, eta), 11), _vjp(ref, (g1, xi, eta), 11)
     _close(out, ref_out)
-    ct = _cotangent(out, 11)
-    gf, gr = vf(ct), vr(ct)
     assert float(jnp.abs(gr[2]).max()) > 1e-3
     _close(gf, gr, tol=1e-8)
 
