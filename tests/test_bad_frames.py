@@ -160,15 +160,15 @@ def test_timestamps_must_increase(tmp_path, capsys):
     root = tmp_path / "tum"
     for sub in ("rgb", "depth"):
         (root / sub).mkdir(parents=True)
-    v, u = np.mgrid[0:120, 0:160]  # small frames: the size does not matter here
+    v, u = np.mgrid[0:480, 0:640]  # TUM's size and preset: the tracking step of the other TUM runs, from the shared cache
     stamps = [1.0, 2.0, 1.5, 3.0, 4.0]  # the third goes back in time
     for k, t in enumerate(stamps):
-        cv2.imwrite(str(root / "rgb" / f"{k}.png"), np.full((120, 160, 3), 100, np.uint8))
+        cv2.imwrite(str(root / "rgb" / f"{k}.png"), np.full((480, 640, 3), 100, np.uint8))
         cv2.imwrite(str(root / "depth" / f"{k}.png"), (5000 * (1.0 + 0.0005 * u + 0.0007 * v)).astype(np.uint16))
     (root / "rgb.txt").write_text("".join(f"{t} rgb/{k}.png\n" for k, t in enumerate(stamps)))
     (root / "depth.txt").write_text("".join(f"{t + 0.001} depth/{k}.png\n" for k, t in enumerate(stamps)))
     out = tmp_path / "out"
-    code = main(["run", "--data", str(root), "--out", str(out), "--track-only", "--quiet", "--on-bad-frame", "skip", "--set", "track.stride=8"])
+    code = main(["run", "--data", str(root), "--out", str(out), "--track-only", "--quiet", "--on-bad-frame", "skip"])
     assert code == 0
     m = json.loads((out / "metrics.json").read_text())
     assert len(m["skipped_frames"]) == 1 and "rgb/2.png" in m["skipped_frames"][0]["reason"]

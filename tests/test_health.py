@@ -14,15 +14,15 @@ import pytest
 from scipy.spatial import cKDTree
 
 from sgad_jax import geometry, gicp, lie, slam
+from sgad_jax.cli import resolve_config
 from sgad_jax.config import DataConfig, SLAMConfig, SyntheticConfig, TrackConfig
 from sgad_jax.io.synthetic import SyntheticDataset, jump_pose
 from sgad_jax.system import SLAM, compile_step
 from sgad_jax.track import transform_cloud
 from sgad_jax.types import FAIL_DEGENERATE, FAIL_INLIERS, FAIL_JUMP, FAIL_NONFINITE, TrackInfo, empty_geometry
 
-# 320 x 240 at stride 4: T dense enough for 2 cm voxels (at 80 x 60 even clean frames lack matches).
-# test_track's config: the compiled step comes from the shared cache.
-CFG = TrackConfig(stride=4, k=15, capacity=1 << 16, max_iterations=50, tolerance=1e-6)
+# 320 x 240: T dense enough for 2 cm voxels (at 80 x 60 even clean frames lack matches).
+CFG = resolve_config(None, None).track  # the demo preset's: the tests' CLI runs at 320 x 240 share its compiled step
 JUMP = 5  # the frame from which the camera is displaced by 20 cm and 10 degrees
 
 

@@ -10,7 +10,9 @@ import pytest
 
 from sgad_jax import lie, slam, splat
 from sgad_jax import mapping
-from sgad_jax.config import DataConfig, MapConfig, SyntheticConfig, TrackConfig
+from sgad_jax.cli import resolve_config
+from sgad_jax.config import DataConfig, MapConfig, SyntheticConfig
+from sgad_jax.system import compile_step
 from sgad_jax.io.synthetic import SyntheticDataset
 from sgad_jax.types import Intrinsics, make_frame
 
@@ -195,12 +197,12 @@ def test_rendering_init_recovers_motion_that_gicp_misses():
     shift = np.array([0.04, -0.03])
     f0, f1 = _plane_frame((0.0, 0.0), intr), _plane_frame(shift, intr)
     true1 = lie.exp(jnp.array([shift[0], shift[1], 0.0, 0.0, 0.0, 0.0]))
-    tcfg = TrackConfig(stride=2, k=10, capacity=1 << 14)
+    tcfg = resolve_config(None, None).track  # the demo preset's: the host loop's step at 80 x 60, from the shared cache
     state = slam.init_state(tcfg)
-    track = jax.jit(slam.track_step, static_argnums=0)
-    state, _, _, _ = track(tcfg, state, f0.depth, intr, jnp.float32(0.0))
+    track = compile_step(tcfg, state, f0.depth, intr, jnp.float32(0.0))
+    state, _, _, _ = track(state, f0.depth, intr, jnp.float32(0.0), None)
     # GICP alone from the previous pose: the plane gives no in-plane constraint.
-    _, T_gicp, _, _ = track(tcfg, state, f1.depth, intr, jnp.float32(0.0))
+    _, T_gicp, _, _ = track(state, f1.depth, intr, jnp.float32(0.0), None)
     err_gicp = np.linalg.norm(np.asarray(T_gicp.translation() - true1.translation()))
     assert err_gicp > 0.03
     # Rendering-based initialisation from frame 0's Gaussians finds the motion from the texture.

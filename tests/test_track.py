@@ -18,7 +18,7 @@ from sgad_jax.io.synthetic import SyntheticDataset
 from sgad_jax.types import make_frame
 from sgad_jax.track import _stretch, cost, solve, track
 
-CFG = TrackConfig(stride=4, k=15, capacity=1 << 16, max_iterations=50, tolerance=1e-6)
+CFG = resolve_config(None, None).track  # the demo preset's: the tests' CLI runs at 320 x 240 share its compiled step
 
 
 @pytest.fixture(scope="module")
