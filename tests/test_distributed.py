@@ -238,7 +238,7 @@ def test_streaming_api_matches_run(reference_run):
 def test_run_with_rendering_init(tmp_path):
     """`map.render_init` in the host loop: the guess refined from the previous frame's Gaussians,
     then GICP; the synthetic trajectory stays accurate."""
-    cfg = resolve_config(None, None, max_frames=6, overrides=["map.iterations=3", "map.render_init=true"])
+    cfg = resolve_config(None, None, max_frames=6, overrides=["map.iterations=3", "map.render_init=true", "map.render_init_iterations=10"])
     result = run(cfg, tmp_path / "ri", progress=False)
     assert result.metrics["frames"] == 6 and result.metrics["ate_rmse_cm"] < 0.05
     assert result.metrics["mapped_frames"] == 6
