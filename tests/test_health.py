@@ -133,6 +133,9 @@ def test_invalid_depth_gives_a_finite_pose_and_a_record():
         assert counts[k] == counts[1]
     t, r = _errors(poses[4], ds.gt_poses[4])
     assert t < 1e-3 and r < 0.05
+    # With no point to match there is nothing to relocalise: no more solver steps than without relocalisation.
+    _, plain, _, _ = _run(dataclasses.replace(CFG, relocalise=False), ds, depths)
+    assert [int(infos[k].iterations) for k in (2, 3)] == [int(plain[k].iterations) for k in (2, 3)]
 
     system = SLAM(SLAMConfig(track=CFG), ds.intrinsics, initial_pose=lie.from_matrix(ds.gt_poses[0]), track_only=True)
     for i in range(len(ds)):
