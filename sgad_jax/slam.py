@@ -16,7 +16,7 @@ from jaxtyping import Array, Bool, Float, Int
 from sgad_jax import geometry, gicp, lie, splat
 from sgad_jax import mapping
 from sgad_jax.config import MapConfig, TrackConfig
-from sgad_jax.track import relocalise, solve, track, transform_cloud
+from sgad_jax.track import MIN_POINTS, relocalise, solve, track, transform_cloud
 from sgad_jax.types import (
     FAIL_DEGENERATE, FAIL_INLIERS, FAIL_JUMP, FAIL_NONFINITE,
     Frame, GeometrySet, InsertInfo, Intrinsics, PixelGaussians, TrackInfo, empty_geometry,
@@ -149,8 +149,8 @@ def track_step(
     With ``cfg.judge`` the solved pose is judged (:func:`judge`: finite, inlier share against
     ``cfg.min_inlier_share`` times the last accepted frame's, jump from the guess, conditioning).
     A failed pose is relocalised (:func:`sgad_jax.track.relocalise`, then GICP from its result,
-    judged again, ``cfg.relocalise``; not a frame without depth to match); only on that branch of a ``lax.cond``, so healthy frames
-    pay nothing for it. If that fails too, the frame keeps the guess (the previous pose if the
+    judged again, ``cfg.relocalise``; not a frame without points to match); only on that branch
+    of a ``lax.cond``, so healthy frames pay nothing for it. If that fails too, the frame keeps the guess (the previous pose if the
     guess is not finite), adds nothing to T and leaves the velocity as it was. A relocalised
     frame keeps the velocity too (its jump is no motion to extrapolate). A non-finite pose is a
     failure even with ``cfg.judge`` off. The failure bits and ``recovered`` are in the returned
@@ -185,19 +185,20 @@ def track_step(
         k = jax.random.fold_in(jax.random.key(0), state.geom.count) if key is None else key
 
         # A frame without points to match (all depth missing) has nothing to relocalise.
-        has_points = jnp.sum(cloud.valid) >= 6
+        has_points = jnp.sum(cloud.valid) >= MIN_POINTS
 
         def attempt(retry, second):
             start = jax.lax.cond(second & retry, lambda: relocalise(cfg, state.geom, cloud, guess, key=k), lambda: guess)
             T, info = jax.lax.cond(second & ~retry, lambda: (start, no_info), lambda: solve_from(start))
-            return retry | (~second & has_points & (first_failure(T, info) != 0)), (start, T, info)
+            failure = first_failure(T, info)  # used of the first attempt only
+            return retry | (~second & has_points & (failure != 0)), (start, T, info, failure)
 
         retried, tried = jax.lax.scan(attempt, jnp.zeros((), bool), jnp.array([False, True]))
-        (_, T, info), (T0, T1, info1) = (jax.tree.map(lambda a, i=i: a[i], tried) for i in (0, 1))
+        (_, T, info, failure), (T0, T1, info1, _) = (jax.tree.map(lambda a, i=i: a[i], tried) for i in (0, 1))
     else:
         T, info = solve_from(guess)
+        failure = first_failure(T, info)
     jump = _jump(T, guess)
-    failure = first_failure(T, info)
     info = dataclasses.replace(info, failure=failure, jump=jnp.where(jnp.isfinite(jump), jump, jnp.inf))
     iterations, share, recovered = info.iterations, _share(info), jnp.zeros((), bool)
     if cfg.relocalise:

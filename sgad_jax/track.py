@@ -89,6 +89,7 @@ def match(cfg: TrackConfig, cand: Candidates, q: Float[Array, "3 m"]) -> tuple[F
 
 
 #: Points nearer than this (metres) get the residual weight of a point at this depth.
+MIN_POINTS = 6  # matched points a 6-DoF pose update needs
 _WEIGHT_NEAR = 0.3
 
 
@@ -177,7 +178,7 @@ def _gauss_newton(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: li
         M = gicp.information(R, cloud.covs, cov_b)
         H_raw, g, c = gicp.linearise(q, e, M, found.astype(jnp.float32) * weight)
         n_in = jnp.sum(found).astype(jnp.int32)
-        enough = n_in >= 6
+        enough = n_in >= MIN_POINTS
         H = H_raw + (1e-6 * jnp.trace(H_raw) / 6.0 + jnp.where(enough, 0.0, 1.0)) * jnp.eye(6)
         xi = jnp.where(enough, -jnp.linalg.solve(H, g), 0.0)
         done = jnp.all(jnp.abs(xi) < cfg.tolerance) | ~enough
@@ -306,7 +307,7 @@ def relocalise(cfg: TrackConfig, geom: GeometrySet, cloud: PointCloud, T0: lie.S
         ok = a_ok & (jnp.min(d2, axis=1) < gate * gate)
         e = jnp.where(ok, q - b[:, j], 0.0)
         H, g, _ = gicp.linearise(q, e, M_b[:, j], ok.astype(jnp.float32))
-        enough = jnp.sum(ok) >= 6
+        enough = jnp.sum(ok) >= MIN_POINTS
         H = H + (1e-6 * jnp.trace(H) / 6.0 + jnp.where(enough, 0.0, 1.0)) * jnp.eye(6)
         xi = jnp.where(enough, -jnp.linalg.solve(H, g), 0.0)
         return lie.retract_left(T, jnp.where(jnp.all(jnp.isfinite(xi)), xi, 0.0))
