@@ -40,6 +40,7 @@ class Mapper:
         self.cfg, self.intr = cfg, intr
         self.n = cfg.map.neighbours
         self.main = jax.process_index() == 0
+        self.progress = True  # progress bars on the scene's long steps (the run's --quiet turns them off)
         self.renders = out / "renders" if (save_renders and out is not None and self.main) else None
         if self.renders is not None:
             self.renders.mkdir(parents=True, exist_ok=True)
@@ -167,7 +168,7 @@ class Mapper:
             return []
         recs = []
         desc = f"{kind} views" if kind else "frames between keyframes"
-        for index in tqdm(indices, desc=desc, unit="view", disable=not self.main or len(indices) < 5, file=sys.stderr):
+        for index in tqdm(indices, desc=desc, unit="view", disable=not (self.progress and self.main) or len(indices) < 5, file=sys.stderr):
             out = self.scene.render(poses[index])
             recs.append(self._score(index, host_frame(source(index), fill=False), out.rgb, np.asarray(splat.surface_depth(out)), kind=kind, mapped=False))
         return recs
@@ -187,7 +188,7 @@ class Mapper:
         rng = np.random.default_rng(seed)
         chosen_of = {i: self.scene.frames_for(poses[i]) for i in mapped}
         losses, t0 = [], time.perf_counter()
-        for _ in tqdm(range(iterations), desc="refining the merged map", unit="step", disable=not self.main, file=sys.stderr):
+        for _ in tqdm(range(iterations), desc="refining the merged map", unit="step", disable=not (self.progress and self.main), file=sys.stderr):
             view = mapped[rng.integers(len(mapped))]
             chosen = chosen_of[view]
             gs, ps, present = self.scene.stack(chosen, params.__getitem__)

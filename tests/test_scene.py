@@ -254,6 +254,7 @@ def test_held_out_views_end_to_end(tmp_path, capsys):
     for kv in ("data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=9", "map.iterations=3", "scene.frames=3"):
         args += ["--set", kv]
     assert main(args) == 0
+    assert "refining" not in capsys.readouterr().err  # --quiet: no progress bar, the refinement's included
     m = json.loads((out / "metrics.json").read_text())
     held = [4, 8]
     assert m["frames"] == 9 and m["nvs_frames"] == 2 and m["mapped_frames"] == 7
