@@ -13,19 +13,29 @@ speed of a matrix product. ``mbytes`` is XLA's count of bytes accessed by the pa
 (before caches: an upper bound on memory traffic), for reading which parts move data rather than
 compute.
 
+Parts jitted alone fuse differently from the same code inside the whole step. ``--trace DIR``
+also runs the whole ``map_step`` once under ``jax.profiler.trace`` and charges each of its
+compiled operations (XLA:CPU thunks) to the innermost ``sgad_jax`` source line it came from (the
+compiled HLO's stack frames): ``trace_ms`` lists the lines that took the most time.
+
 Usage::
 
-    python benchmarks/profile_map.py [--data ../shared/data/tum_fr1_xyz] [--repeats 5]
+    python benchmarks/profile_map.py [--data ../shared/data/tum_fr1_xyz] [--repeats 5] [--trace DIR]
 
 Prints one JSON object: ``parts`` (``{name: {"ms", "floor_ms", "gflop", "mbytes"}}``),
-``map_frame_640x480_s`` (the whole ``map_step``), ``peak_gflops``, the device.
+``map_frame_640x480_s`` (the whole ``map_step``), ``peak_gflops``, the device, and with
+``--trace`` ``trace_ms`` (``{"file.py:function:line": ms}``, the 25 largest).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
+import glob
+import gzip
 import json
 import os
+import re
 import sys
 import tempfile
 import time
@@ -45,10 +55,61 @@ def _median_ms(fn, repeats: int) -> float:
     return 1000.0 * float(np.median(times))
 
 
+def _hlo_table(lines: list[str], name: str) -> dict[int, str]:
+    """One of the compiled HLO text's id tables (``FileNames``, ``StackFrames``, ...)."""
+    if name not in lines:
+        return {}
+    out = {}
+    for line in lines[lines.index(name) + 1 :]:
+        m = re.match(r"^(\d+) (.*)$", line)
+        if not m:
+            break
+        out[int(m.group(1))] = m.group(2)
+    return out
+
+
+def _time_by_source_line(hlo: str, trace_dir: str, top: int = 25) -> dict[str, float]:
+    """Milliseconds of the traced operations, summed by the innermost ``sgad_jax`` source line of
+    each (an operation without one keeps its own name)."""
+    lines = hlo.split("\n")
+    files = {k: v.strip('"') for k, v in _hlo_table(lines, "FileNames").items()}
+    funcs = {k: v.strip('"') for k, v in _hlo_table(lines, "FunctionNames").items()}
+    ours = {}  # file location id -> "file.py:function:line", for locations inside sgad_jax
+    for k, v in _hlo_table(lines, "FileLocations").items():
+        m = re.search(r"file_name_id=(\d+) function_name_id=(\d+) line=(\d+)", v)
+        if m and "sgad_jax" in files.get(int(m.group(1)), ""):
+            ours[k] = f"{os.path.basename(files[int(m.group(1))])}:{funcs.get(int(m.group(2)), '?')}:{m.group(3)}"
+    frames = {}
+    for k, v in _hlo_table(lines, "StackFrames").items():
+        m = re.search(r"file_location_id=(\d+) parent_frame_id=(\d+)", v)
+        if m:
+            frames[k] = (int(m.group(1)), int(m.group(2)))
+    op_frame = {m.group(1): int(m.group(2)) for m in re.finditer(r"\n\s*%?([\w.\-]+) = [^\n]*?stack_frame_id=(\d+)", hlo)}
+
+    def source(op: str) -> str:
+        frame, seen = op_frame.get(op), set()
+        while frame in frames and frame not in seen:  # innermost frame first
+            seen.add(frame)
+            loc, frame = frames[frame]
+            if loc in ours:
+                return ours[loc]
+        return op
+
+    totals: dict[str, float] = collections.defaultdict(float)
+    for path in glob.glob(os.path.join(trace_dir, "**", "*.trace.json.gz"), recursive=True):
+        with gzip.open(path) as f:
+            events = json.load(f).get("traceEvents", [])
+        for e in events:  # complete events; Python frames ("$...") and the executor's spans skipped
+            if e.get("ph") == "X" and not e.get("name", "$").startswith(("$", "ThunkExecutor")):
+                totals[source(e["name"])] += e.get("dur", 0.0) / 1000.0
+    return {k: round(v, 1) for k, v in sorted(totals.items(), key=lambda kv: -kv[1])[:top]}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", default=os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz"))
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--trace", metavar="DIR", help="also trace the whole step once into DIR and time it by source line")
     args = p.parse_args(argv)
 
     import cv2
@@ -125,6 +186,12 @@ def main(argv: list[str] | None = None) -> int:
 
     step = jax.jit(lambda f, p, g, n, q: slam.map_step(cfg, f, p, g, n, q, present, intr))
     map_s = _median_ms(lambda: step(frame, pose, nb_gs, nb, nb_poses), max(1, args.repeats // 2)) / 1000
+    trace_ms = None
+    if args.trace:
+        with jax.profiler.trace(args.trace):
+            jax.block_until_ready(step(frame, pose, nb_gs, nb, nb_poses))
+        hlo = step.lower(frame, pose, nb_gs, nb, nb_poses).compile().as_text()
+        trace_ms = _time_by_source_line(hlo, args.trace)
 
     # Host work after mapping a frame.
     rgb, target = np.clip(np.asarray(own.rgb), 0, 1), np.asarray(frame.rgb)
@@ -148,6 +215,8 @@ def main(argv: list[str] | None = None) -> int:
         "map_frame_640x480_s" if (intr.width, intr.height) == (640, 480) else f"map_frame_{intr.width}x{intr.height}_s": round(map_s, 3),
         "parts": parts,
     }
+    if trace_ms is not None:
+        out["trace_ms"] = trace_ms
     print(json.dumps(out, indent=2))
     return 0
 
