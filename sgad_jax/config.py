@@ -69,7 +69,10 @@ class TrackConfig:
     eps: float = 1e-3  # floor of eigenvalue ratios after scale normalisation
     min_depth: float = 0.1
     max_depth: float = 0.0  # 0: no limit
-    voxel_size: float = 0.02  # geometry set: one Gaussian per voxel; a point in an occupied voxel overlaps T
+    # Geometry set: one Gaussian per voxel of this size; a point in an occupied voxel overlaps T.
+    # 3 cm with matches within one voxel (max_correspondence), not 2 cm and 5 cm: noisy depth and
+    # frames far apart track within 20% of clean (docs/method.md, "Depth outliers").
+    voxel_size: float = 0.03
     capacity: int = 1 << 18  # geometry set capacity on the device (Gaussians); see sgad_jax.paging
     # The set is paged (far entries to host memory, the set rebuilt around the camera) when fuller
     # than page_high of its capacity, down to page_low; also when the camera nears its key cube's edge.
@@ -77,7 +80,7 @@ class TrackConfig:
     page_low: float = 0.5
     max_iterations: int = 30  # Gauss-Newton steps per solver level (see coarse)
     tolerance: float = 5e-4  # stop when the update's translation (m) and rotation (rad) fall below it
-    max_correspondence: float = 0.05  # metres between a point and its match in T
+    max_correspondence: float = 0.03  # metres between a point and its match in T (one voxel)
     nn_weight: float = 0.1  # match score (n_b . e)^2 + nn_weight |e|^2: 0 is pure point-to-surface
     constant_velocity: bool = True
     # A depth image identical to the previous frame's (a repeated capture: 7-Scenes repeats ~1 in 5

