@@ -36,11 +36,11 @@ class Mapper:
     devices into a :class:`GaussianStore`. Afterwards it renders and scores held-out views from the
     scene (:mod:`sgad_jax.scene`) and refines the merged map."""
 
-    def __init__(self, cfg: SLAMConfig, intr, out: pathlib.Path | None, save_renders: bool, mesh=None):
+    def __init__(self, cfg: SLAMConfig, intr, out: pathlib.Path | None, save_renders: bool, mesh=None, *, progress: bool = True):
         self.cfg, self.intr = cfg, intr
         self.n = cfg.map.neighbours
         self.main = jax.process_index() == 0
-        self.progress = True  # progress bars on the scene's long steps (the run's --quiet turns them off)
+        self.progress = progress  # bars on the scene's long steps (held-out scoring, refinement)
         self.renders = out / "renders" if (save_renders and out is not None and self.main) else None
         if self.renders is not None:
             self.renders.mkdir(parents=True, exist_ok=True)

@@ -145,10 +145,8 @@ def run(
     skipped: list[dict] = []
     system = SLAM(
         cfg, ds.intrinsics, initial_pose=initial_pose(ds), out_dir=out, track_only=track_only, save_renders=save_renders,
-        mesh=mesh, holdout_every=holdout_every, source=lambda k: ds[kept[k]],
+        mesh=mesh, holdout_every=holdout_every, source=lambda k: ds[kept[k]], progress=progress,
     )
-    if system.mapper is not None:
-        system.mapper.progress = progress
     if main:
         for line in ds.warnings:
             print(f"sgad-jax: warning: {line}", file=sys.stderr)

@@ -74,7 +74,8 @@ class SLAM:
     With ``holdout_every`` N > 0 the frames of run index ``i > 0``, ``i % N == 0`` are held out:
     tracked, but never mapped nor anyone's neighbour. ``source(i)`` reads frame ``i`` again (the
     held-out views and the refinement's training views); without it held-out frames are kept in
-    memory and the refinement is not available.
+    memory and the refinement is not available. ``progress``: progress bars on the held-out scoring
+    and the refinement.
     """
 
     def __init__(
@@ -89,6 +90,7 @@ class SLAM:
         mesh=None,
         holdout_every: int = 0,
         source=None,
+        progress: bool = True,
     ):
         if holdout_every < 0:
             raise ConfigError(f"--holdout-every must be >= 0, got {holdout_every}")
@@ -98,7 +100,7 @@ class SLAM:
         self.between: list[int] = []  # frames between keyframes (map.every > 1) not yet rendered and scored
         self._held: dict[int, object] = {}  # their samples, when there is no source to read them again
         self.dropped = {"overflow": 0, "out_of_range": 0}  # points T could not take (InsertInfo)
-        self.mapper = None if track_only else Mapper(cfg, intr, None if out_dir is None else pathlib.Path(out_dir), save_renders, mesh)
+        self.mapper = None if track_only else Mapper(cfg, intr, None if out_dir is None else pathlib.Path(out_dir), save_renders, mesh, progress=progress)
         # The whole state carried from frame to frame, one pytree (a checkpoint saves it as is).
         self.state = slam.RunState(slam.init_state(cfg.track, initial_pose), None if self.mapper is None else self.mapper.empty_recent())
         self.pager = paging.Pager(cfg.track, np.asarray(self.state.track.geom.origin))

@@ -88,8 +88,9 @@ def match(cfg: TrackConfig, cand: Candidates, q: Float[Array, "3 m"]) -> tuple[F
     return jnp.where(found, q - pick(cand.points), 0.0), cov_b, found
 
 
-#: Points nearer than this (metres) get the residual weight of a point at this depth.
 MIN_POINTS = 6  # matched points a 6-DoF pose update needs
+
+#: Points nearer than this (metres) get the residual weight of a point at this depth.
 _WEIGHT_NEAR = 0.3
 
 

@@ -21,7 +21,7 @@ from sgad_jax.system import SLAM, compile_step
 from sgad_jax.track import transform_cloud
 from sgad_jax.types import FAIL_DEGENERATE, FAIL_INLIERS, FAIL_JUMP, FAIL_NONFINITE, TrackInfo, empty_geometry
 
-# 320 x 240: T dense enough for 2 cm voxels (at 80 x 60 even clean frames lack matches).
+# 320 x 240: T dense enough for its voxels (at 80 x 60 even clean frames lack matches).
 CFG = resolve_config(None, None).track  # the demo preset's: the tests' CLI runs at 320 x 240 share its compiled step
 JUMP = 5  # the frame from which the camera is displaced by 20 cm and 10 degrees
 
