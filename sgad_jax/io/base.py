@@ -13,7 +13,10 @@ import concurrent.futures
 import copy
 import dataclasses
 import functools
+import os
 import pathlib
+import sys
+import threading
 import zlib
 
 import cv2
@@ -90,6 +93,17 @@ def read_image(path: pathlib.Path, *, depth: bool = False) -> np.ndarray:
             raise DatasetError(f"{path}: depth image must have one channel, got shape {image.shape}")
         return image
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def _yield_to_compute() -> None:
+    """Lower the calling thread's scheduling priority (nice +10; Linux gives each thread its own),
+    so that on a machine with few cores reading ahead takes the cores the tracking and mapping
+    steps leave idle rather than slowing them."""
+    if sys.platform.startswith("linux"):  # elsewhere the id would name a process
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+        except OSError:  # not permitted here: read at the same priority
+            pass
 
 
 def _truncated(data: np.ndarray) -> bool:
@@ -268,13 +282,16 @@ class Dataset:
             raise DatasetError(
                 f"{self.describe(j)}: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}"
             )
-        finite = np.isfinite(depth)
-        if self.cfg.nonfinite_depth != "missing" and not finite.all():
-            raise DatasetError(
-                f"{self.describe(j, depth=True)}: depth holds {int((~finite).sum())} NaN/Inf pixels "
-                "(set data.nonfinite_depth=missing if they mark missing depth)"
-            )
-        depth = np.where(finite & (depth > 0), depth, 0.0).astype(np.float32)
+        depth = np.asarray(depth, np.float32)
+        if not np.isfinite(depth.sum()):  # one pass; the per-pixel check only when something is not finite
+            finite = np.isfinite(depth)
+            if self.cfg.nonfinite_depth != "missing" and not finite.all():
+                raise DatasetError(
+                    f"{self.describe(j, depth=True)}: depth holds {int((~finite).sum())} NaN/Inf pixels "
+                    "(set data.nonfinite_depth=missing if they mark missing depth)"
+                )
+            depth = np.where(finite, depth, 0.0).astype(np.float32)
+        depth = np.maximum(depth, np.float32(0.0))  # negative depth is missing
         if self.cfg.noise_share > 0:
             depth = add_depth_noise(depth, self.cfg.noise_share, self.cfg.noise_sigma, self.cfg.noise_seed, zlib.crc32(depth.tobytes()))
         if self.cfg.depth_trunc > 0:
@@ -303,7 +320,7 @@ class Dataset:
         every frame before it has been yielded; with ``skip_bad`` it is yielded as a
         :class:`BadFrame` instead, and reading goes on.
         """
-        with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="sgad-read") as pool:
+        with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="sgad-read", initializer=_yield_to_compute) as pool:
             pending, nxt = collections.deque(), start
             try:
                 while True:

@@ -100,7 +100,9 @@ def _image_size(path: pathlib.Path) -> tuple[int, int]:
 
 
 def _depth_metres(raw: np.ndarray, scale: float) -> np.ndarray:
-    return raw.astype(np.float32) / np.float32(scale)
+    depth = raw.astype(np.float32)
+    depth /= np.float32(scale)  # in place: the reader's passes over a frame cost the tracking step cores
+    return depth
 
 
 def _no_gt(n: int) -> np.ndarray:
@@ -317,7 +319,8 @@ class SevenScenesDataset(_FileDataset):
 
     def _load_raw(self, j):
         raw = read_image(self.depth_paths[j], depth=True)
-        depth = np.where(raw == 65535, 0.0, _depth_metres(raw, self.depth_scale)).astype(np.float32)
+        depth = _depth_metres(raw, self.depth_scale)
+        depth[raw == 65535] = 0.0
         return read_image(self.rgb_paths[j]), depth
 
 
