@@ -140,6 +140,7 @@ class MapConfig:
 
     iterations: int = 100
     neighbours: int = 2
+    neighbour_gap: int = 1  # the neighbours are every gap-th previous mapped frame (1: the last ones, as the paper)
     # Map every K-th tracked frame (keyframes; neighbours are counted among them); the frames between
     # are rendered from the scene and scored with the rest (docs/method.md, "Keyframes")
     every: int = 1
@@ -174,6 +175,8 @@ class MapConfig:
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"map.{name}: choose {' or '.join(allowed)}, got {getattr(self, name)!r}")
+        if self.neighbour_gap < 1:
+            raise ConfigError(f"map.neighbour_gap: every gap-th previous mapped frame, gap >= 1; got {self.neighbour_gap}")
         if not 0 < self.lr_offset_final <= self.lr_offset:
             raise ConfigError(f"map.lr_offset_final must lie in (0, map.lr_offset]; got {self.lr_offset_final}")
         if self.offset_bound < 0:

@@ -29,9 +29,16 @@ from sgad_jax.types import Frame, PixelGaussians, host_frame
 SCORES = ("psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm")
 
 
+def neighbour_slots(index: np.ndarray, k: int, n: int, gap: int = 1) -> list[int]:
+    """The slots of :class:`~sgad_jax.slam.Recent` (run indices ``index``, newest first, -1 empty)
+    holding the neighbours of the frame in slot ``k``, newest first: every ``gap``-th of the ``n * gap``
+    frames before it, those there are."""
+    return [j for j in range(k + gap, k + 1 + n * gap, gap) if j < len(index) and index[j] >= 0]
+
+
 class Mapper:
-    """The appearance branch of the host loop: collects tracked frames (with their ``n`` previous
-    mapped frames as neighbours) into batches of ``map.batch`` frames, maps each batch (spread over
+    """The appearance branch of the host loop: collects tracked frames (with ``n`` previous mapped
+    frames as neighbours, every ``map.neighbour_gap``-th) into batches of ``map.batch`` frames, maps each batch (spread over
     the devices, one frame each), scores every frame's render and moves its Gaussians off the
     devices into a :class:`GaussianStore`. Afterwards it renders and scores held-out views from the
     scene (:mod:`sgad_jax.scene`) and refines the merged map."""
@@ -69,7 +76,7 @@ class Mapper:
 
     def empty_recent(self) -> slam.Recent:
         """The run state's recent frames: room for a batch and its frames' neighbours."""
-        return slam.empty_recent(self.batch_size + self.n, self.intr.height, self.intr.width)
+        return slam.empty_recent(self.batch_size + self.n * self.cfg.map.neighbour_gap, self.intr.height, self.intr.width)
 
     def refine_guess(self, recent: slam.Recent, frame: Frame, guess):
         """Rendering-based initialisation of the pose guess from the previous frame's Gaussians as
@@ -115,7 +122,7 @@ class Mapper:
         entry = lambda k: (int(host.index[k]), jax.tree.map(lambda x: x[k], host.frame), jax.tree.map(lambda x: x[k], host.pose))  # noqa: E731
         pending, rows = [entry(k) for k in reversed(range(queued))], []  # oldest first
         for k, (_, frame, pose) in zip(reversed(range(queued)), pending):
-            have = [entry(j) for j in range(k + 1, k + 1 + self.n) if host.index[j] >= 0]  # its neighbours, newest first
+            have = [entry(j) for j in neighbour_slots(host.index, k, self.n, self.cfg.map.neighbour_gap)]
             nb = have + [have[0] if have else (-1, frame, pose)] * (self.n - len(have))
             rows.append((
                 frame,

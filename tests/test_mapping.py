@@ -12,6 +12,7 @@ from sgad_jax import lie, slam, splat
 from sgad_jax import mapping
 from sgad_jax.cli import resolve_config
 from sgad_jax.config import DataConfig, MapConfig, SyntheticConfig
+from sgad_jax.mapper import neighbour_slots
 from sgad_jax.system import compile_step
 from sgad_jax.io.synthetic import SyntheticDataset
 from sgad_jax.types import Intrinsics, make_frame
@@ -44,6 +45,15 @@ def test_schedule_spends_the_share_on_the_own_view():
 
 
 @pytest.mark.slow
+def test_neighbour_slots_take_every_gap_th_previous_frame():
+    index = np.array([9, 8, 7, 6, 5, 4, 3, 2, -1, -1])  # run indices of the recent frames, newest first
+    assert neighbour_slots(index, 0, 2) == [1, 2]  # frame 9: frames 8 and 7
+    assert neighbour_slots(index, 1, 2, gap=3) == [4, 7]  # frame 8: frames 5 and 2
+    assert neighbour_slots(index, 0, 2, gap=4) == [4]  # frame 9: frame 5; frame 1 is not held
+    assert neighbour_slots(index, 7, 2) == []  # frame 2: none held
+    assert neighbour_slots(index[:3], 1, 3) == [2]  # the buffer's end
+
+
 def test_mapping_loss_decreases(room):
     intr, frames, poses = room
     cfg = MapConfig(iterations=30)
