@@ -287,7 +287,8 @@ def _check_writable(out: pathlib.Path) -> None:
     """Fail before any work when the output folder cannot be written."""
     try:
         out.mkdir(parents=True, exist_ok=True)
-        write_bytes(out / ".sgad_write_test", b"")
-        (out / ".sgad_write_test").unlink()
+        probe = out / f".sgad_write_test.{os.getpid()}"  # one per process: the processes of a run share the folder
+        write_bytes(probe, b"")
+        probe.unlink()
     except OSError as err:
         raise DatasetError(f"{out}: the output folder cannot be written ({err.strerror or err})") from None
