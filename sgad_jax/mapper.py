@@ -38,8 +38,8 @@ def neighbour_slots(index: np.ndarray, k: int, n: int, gap: int = 1) -> list[int
 
 class Mapper:
     """The appearance branch of the host loop: collects tracked frames (with ``n`` previous mapped
-    frames as neighbours, every ``map.neighbour_gap``-th) into batches of ``map.batch`` frames, maps each batch (spread over
-    the devices, one frame each), scores every frame's render and moves its Gaussians off the
+    frames as neighbours, every ``map.neighbour_gap``-th) into batches of ``map.batch`` frames,
+    maps each batch (spread over the devices, one frame each), scores every frame's render and moves its Gaussians off the
     devices into a :class:`GaussianStore`. Afterwards it renders and scores held-out views from the
     scene (:mod:`sgad_jax.scene`) and refines the merged map."""
 
