@@ -1,8 +1,6 @@
 """ScanNet++ DSLR (876x584 after the usual half-size resize): paper settings R = 10, K_c = 10.
 
-T's voxels and correspondence limit scale with the points' spacing: 6 cm at R = 10 as 3 cm at
-R = 5 (on Replica with a simulated structured-light sensor, 3 cm lost to small_gicp, 6 cm beat it;
-docs/method.md, "Depth outliers").
+T's voxels and correspondence limit 6 cm, as Replica's at the same stride (configs/replica.py).
 """
 
 from sgad_jax.config import DataConfig, SLAMConfig, TrackConfig

@@ -44,7 +44,6 @@ def test_schedule_spends_the_share_on_the_own_view():
     assert abs(np.sum(sched == 1) - np.sum(sched == 2)) <= 1
 
 
-@pytest.mark.slow
 def test_neighbour_slots_take_every_gap_th_previous_frame():
     index = np.array([9, 8, 7, 6, 5, 4, 3, 2, -1, -1])  # run indices of the recent frames, newest first
     assert neighbour_slots(index, 0, 2) == [1, 2]  # frame 9: frames 8 and 7
@@ -54,6 +53,7 @@ def test_neighbour_slots_take_every_gap_th_previous_frame():
     assert neighbour_slots(index[:3], 1, 3) == [2]  # the buffer's end
 
 
+@pytest.mark.slow
 def test_mapping_loss_decreases(room):
     intr, frames, poses = room
     cfg = MapConfig(iterations=30)
