@@ -125,16 +125,19 @@ def _one(tree):
 
 
 def render_into(
-    g: PixelGaussians, pose: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, own, window: int, *, own_at_pose: bool = True
+    g: PixelGaussians, pose: lie.SE3, view_pose: lie.SE3, intr: Intrinsics, own, window: int, *, own_at_pose: bool = True,
+    own_offsets: bool = True,
 ) -> splat.Render:
     """The frame's Gaussians in a view: the exact own-view path, or one binned layer elsewhere.
     ``own_at_pose``: the own view is seen at ``pose`` itself (``view_pose`` ignored there; the
     faster own-pose renderer, whose image does not depend on the pose, see
     :func:`sgad_jax.splat.render_own`); ``False`` renders it at ``view_pose``, so that the own
-    view's pose gradient can be checked (``tests/test_mapping.py``)."""
+    view's pose gradient can be checked (``tests/test_mapping.py``). ``own_offsets=False``: the own
+    view sees the Gaussians at their measured depths (``map.offset_in_own_view``)."""
 
     def own_view(_):
-        return splat.render_own(g, pose, intr, window=window, view_pose=None if own_at_pose else view_pose)
+        go = g if own_offsets else dataclasses.replace(g, offset=jnp.zeros_like(g.offset))
+        return splat.render_own(go, pose, intr, window=window, view_pose=None if own_at_pose else view_pose)
 
     def other_view(_):
         return splat.render(_one(g), _one(pose), view_pose, intr, layers=1, window=window)
@@ -160,7 +163,7 @@ def view_loss(
     ``own_at_pose``: the own view is the frame's camera at ``pose`` (see :func:`render_into`)."""
     view = jax.tree.map(lambda x: x[k], views)
     target = view.rgb if targets is None else jax.tree.map(lambda x: x[k], targets)
-    out = render_into(g, pose, view.pose, intr, k == 0, window, own_at_pose=own_at_pose)
+    out = render_into(g, pose, view.pose, intr, k == 0, window, own_at_pose=own_at_pose, own_offsets=cfg.offset_in_own_view)
     if background is not None:
         keep = jnp.asarray(k == 0, out.alpha.dtype)
         out = splat.over(out, jax.tree.map(lambda x: keep * x, background))

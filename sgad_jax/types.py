@@ -116,7 +116,10 @@ class PixelGaussians:
 
     @property
     def radius(self) -> Float[Array, "*b h w"]:
-        return jnp.exp(self.log_radius)
+        # Scaled with the Gaussian's depth: moved along its ray it keeps its footprint in its own
+        # view, so an offset is purely geometric and cannot stand in for the radius there.
+        scale = jnp.where(self.depth > 0, self.z / jnp.where(self.depth > 0, self.depth, 1.0), 1.0)
+        return jnp.exp(self.log_radius) * scale
 
     @property
     def opacity(self) -> Float[Array, "*b h w"]:

@@ -81,8 +81,13 @@ def test_any_view_matches_reference():
     assert float(ref.alpha.max()) > 0.5  # the scene is visible, with overlap
     _close(fast, ref)
     # The offsets (+-10 cm) reorder Gaussians: the rule (order of the measured depths) matters here.
-    in_z_order = splat_ref.render(dataclasses.replace(g, depth=g.z, offset=0.0 * g.offset), poses, view, _intr())
+    in_z_order = splat_ref.render(_at_offset_depth(g), poses, view, _intr())
     assert float(jnp.abs(fast.rgb - in_z_order.rgb).max()) > 1e-3
+
+
+def _at_offset_depth(g):
+    """The same Gaussians (positions and radii) with their offsets folded into the measured depth."""
+    return dataclasses.replace(g, depth=g.z, offset=0.0 * g.offset, log_radius=jnp.log(g.radius))
 
 
 @pytest.mark.parametrize("window", [3, 5])
@@ -98,8 +103,23 @@ def test_own_view_matches_reference(window):
     pose1 = jax.tree.map(lambda x: x[None], pose)
     fast = splat.render_own(g1, pose, _intr(), window=window)
     _close(fast, splat_ref.render(g, pose1, pose, _intr(), window=window))
-    in_z_order = splat_ref.render(dataclasses.replace(g, depth=g.z, offset=0.0 * g.offset), pose1, pose, _intr(), window=window)
+    in_z_order = splat_ref.render(_at_offset_depth(g), pose1, pose, _intr(), window=window)
     assert float(jnp.abs(fast.rgb - in_z_order.rgb).max()) > 1e-3
+
+
+def test_offsets_change_only_the_depth_of_the_own_view():
+    """An offset moves a Gaussian along its own pixel's ray and its radius scales with its depth, so
+    in its own view it keeps its pixel and footprint: colour and opacity are those of zero offsets
+    (the reference renderer, and the fast own-view path), the depth is not."""
+    g, pose = _scene(1, 3), _pose(4)
+    pose1 = jax.tree.map(lambda x: x[None], pose)
+    zero = dataclasses.replace(g, offset=0.0 * g.offset)
+    ref, ref0 = (splat_ref.render(x, pose1, pose, _intr()) for x in (g, zero))
+    fast = splat.render_own(jax.tree.map(lambda x: x[0], g), pose, _intr())
+    for r in (ref, fast):
+        np.testing.assert_allclose(np.asarray(r.rgb), np.asarray(ref0.rgb), atol=1e-9)
+        np.testing.assert_allclose(np.asarray(r.alpha), np.asarray(ref0.alpha), atol=1e-9)
+    assert float(jnp.abs(ref.depth - ref0.depth).max()) > 1e-2
 
 
 @pytest.mark.slow
