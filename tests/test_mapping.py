@@ -87,6 +87,20 @@ def test_offsets_stay_fixed_in_the_ablation_and_do_not_spoil_the_own_view_fit(ro
     assert psnr[True] > psnr[False] - 1.0, psnr
 
 
+def test_offsets_are_learned_from_the_other_views(room):
+    """By default the own view's loss sees the Gaussians at their measured depths, so a frame fitted
+    to its own view alone keeps every offset at 0 (there an offset changes only the rendered depth);
+    with ``offset_in_own_view`` (the paper's loss) the depth term moves them."""
+    intr, frames, poses = room
+    g0 = mapping.init_gaussians(frames[1], intr)
+    own = _views(frames, poses, [1])
+    fit = jax.jit(mapping.map_frame, static_argnums=0)
+    alone, _ = fit(MapConfig(iterations=10), g0, poses[1], own, intr)
+    paper, _ = fit(MapConfig(iterations=10, offset_in_own_view=True), g0, poses[1], own, intr)
+    assert float(jnp.abs(alone.offset).max()) == 0.0 and float(jnp.abs(alone.rgb - g0.rgb).max()) > 0
+    assert float(jnp.mean(jnp.abs(paper.offset) > 0)) > 0.5
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("at_invalid", [True, False])
 def test_offsets_without_measured_depth(room, at_invalid):
