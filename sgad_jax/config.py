@@ -67,9 +67,6 @@ class TrackConfig:
     window: int = 5  # the K_c neighbours are the nearest in 3D among a window x window patch of the strided grid
     depth_gate: float = 0.1  # a neighbour farther than depth_gate * depth (along z) is another surface
     eps: float = 1e-3  # floor of eigenvalue ratios after scale normalisation
-    # ellipse: the patch's shape, scaled (paper) | plane: its normal alone, eigenvalues (1, 1, eps) as in
-    # GICP; on a noisy sensor a small patch's spread along its normal is noise (docs/method.md, "Tracking")
-    covariance: str = "ellipse"
     min_depth: float = 0.1
     max_depth: float = 0.0  # 0: no limit
     # Geometry set: one Gaussian per voxel of this size; a point in an occupied voxel overlaps T.
@@ -128,8 +125,6 @@ class TrackConfig:
     fuse_observations: int = 4  # each entry of T: the mean of its voxel's first N observations (1: the first, as the paper)
 
     def __post_init__(self):
-        if self.covariance not in ("ellipse", "plane"):
-            raise ConfigError(f"track.covariance: choose ellipse or plane, got {self.covariance!r}")
         if any(c < 1 for c in self.coarse):
             raise ConfigError(f"track.coarse: each level takes every c-th point, c >= 1; got {self.coarse}")
         if not self.extrapolation >= 1.0:
