@@ -172,10 +172,17 @@ def view_loss(
     # Depth is compared after normalising by the accumulated opacity: at a partly covered pixel the
     # blended depth is short by (1 - alpha) z, which is not a geometric error.
     depth = out.depth / jnp.maximum(out.alpha, 1e-3)
-    return losses.mapping_loss(
+    loss = losses.mapping_loss(
         out.rgb, depth, target, view.depth, view.valid, mask,
         weight_l1=cfg.weight_l1, weight_ssim=cfg.weight_ssim, weight_depth=cfg.weight_depth,
     )
+    if not cfg.offset_in_own_view:
+        # The own view measures each Gaussian's depth directly: its depth term for the offsets is
+        # per Gaussian, |z - D| = |offset|, free of the blending's bias (docs/method.md, "Mapping").
+        # Written as offset * sign(offset), whose gradient at zero is zero (jnp.abs's is 1).
+        anchor = losses.depth_l1(g.offset * jax.lax.stop_gradient(jnp.sign(g.offset)), 0.0, view.valid)
+        loss = loss + jnp.where(k == 0, cfg.weight_depth * anchor, 0.0)
+    return loss
 
 
 def map_frame(
