@@ -154,8 +154,9 @@ class MapConfig:
     weight_ssim: float = 0.2
     weight_depth: float = 1.0
     learn_offset: bool = True  # False: Gaussians stay at the measured depth (the paper's ablation)
-    # False: the own view's loss sees the Gaussians at their measured depths. There an offset changes
-    # only the rendered depth, and the depth loss spent it on the compositing's bias (docs/method.md)
+    # False: the own view's loss sees the Gaussians at their measured depths and holds each offset
+    # to them by weight_depth * |offset|. There a rendered offset changes only the depth, and the
+    # depth loss spent it on the compositing's bias (docs/method.md)
     offset_in_own_view: bool = False
     offset_at_invalid: bool = False  # True: also learn the offsets of Gaussians where depth was not measured (see docs/method.md)
     # An offset corrects the measured depth within the sensor's error: |offset| <= offset_bound * D^2

@@ -101,6 +101,23 @@ def test_offsets_are_learned_from_the_other_views(room):
     assert float(jnp.mean(jnp.abs(paper.offset) > 0)) > 0.5
 
 
+def test_own_view_pulls_each_offset_back_by_its_own_depth_error(room):
+    """The own view's loss does not render the offsets; its only term in them is the depth error
+    ``U |offset|`` averaged over the valid pixels: gradient ``U sign(offset) / n_valid`` per
+    Gaussian, and none at zero (offsets start there and stay unless other views move them)."""
+    intr, frames, poses = room
+    views = _views(frames, poses, [1, 0])
+    g = mapping.init_gaussians(frames[1], intr)
+    offset = jnp.asarray(np.random.default_rng(0).normal(0, 0.01, g.offset.shape), jnp.float32)
+    offset = offset.at[::2].set(0.0)
+    cfg = MapConfig(weight_depth=0.7)
+    grad = jax.jit(jax.grad(lambda o: mapping.view_loss(cfg, dataclasses.replace(g, offset=o), poses[1], views, 0, intr)))(offset)
+    valid = np.asarray(views.valid[0], np.float64)
+    want = 0.7 * np.sign(np.asarray(offset)) * valid / valid.sum()
+    np.testing.assert_allclose(np.asarray(grad), want, rtol=1e-5, atol=1e-12)
+    assert (want != 0).sum() > 100 and (np.asarray(grad)[::2] == 0).all()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("at_invalid", [True, False])
 def test_offsets_without_measured_depth(room, at_invalid):
