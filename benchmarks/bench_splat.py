@@ -13,7 +13,8 @@ compile time:
   forward + backward with respect to all three frames' Gaussians;
 * the scene renderer (``render_scene``, priority compositing): 8 frames' Gaussians (the three
   read, repeated) into one 640x480 view, forward;
-* one full ``map_frame`` (``--iterations``, default 100) at 640x480 and 320x240 with 2 neighbour views.
+* one full ``map_frame`` at 640x480 and 320x240 with 2 neighbour views, with the data's preset's
+  iterations and colour fit (``--iterations``, ``--colour-fit`` to change them).
 
 Usage::
 
@@ -30,6 +31,7 @@ Prints one JSON object with ``own_640x480_fwd_ms``, ``own_640x480_fwd_bwd_ms``,
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -78,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", default=os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "tum_fr1_xyz"))
     p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--iterations", type=int, default=100)
+    p.add_argument("--iterations", type=int, default=None, help="Adam iterations a mapped frame (default: the data's preset's)")
+    p.add_argument("--colour-fit", type=int, default=None, help="colour-fit steps after them (default: the preset's)")
     p.add_argument("--keep-freed-memory", action="store_true", help="tune glibc malloc to keep freed memory (see keep_freed_memory)")
     args = p.parse_args(argv)
     kept = keep_freed_memory() if args.keep_freed_memory else False  # before JAX starts its threads
@@ -89,13 +92,19 @@ def main(argv: list[str] | None = None) -> int:
     from sgad_jax import lie, scene, slam, splat
     from sgad_jax import mapping
     from sgad_jax.cli import resolve_config
-    from sgad_jax.config import DataConfig, MapConfig
+    from sgad_jax.config import DataConfig
     from sgad_jax.io.datasets import open_dataset
     from sgad_jax.types import make_frame
 
     path = args.data if os.path.isdir(args.data) else ""
+    preset = resolve_config(None, path or None).map
+    cfg = dataclasses.replace(
+        preset,
+        iterations=preset.iterations if args.iterations is None else args.iterations,
+        colour_fit=preset.colour_fit if args.colour_fit is None else args.colour_fit,
+    )
     out: dict = {
-        "data": path or "synthetic", "repeats": args.repeats, "iterations": args.iterations, "device": jax.devices()[0].device_kind,
+        "data": path or "synthetic", "repeats": args.repeats, "iterations": cfg.iterations, "colour_fit": cfg.colour_fit, "device": jax.devices()[0].device_kind,
         "keep_freed_memory": kept,
     }
     compile_s: dict[str, float] = {}
@@ -145,7 +154,6 @@ def main(argv: list[str] | None = None) -> int:
                 compile_s[key], t = _timed(fn, gs, repeats=args.repeats)
                 out[key + "_ms"] = 1000 * t
         # one mapped frame
-        cfg = MapConfig(iterations=args.iterations)
         stack = lambda *xs: jnp.stack(xs)  # noqa: E731
         nb = jax.tree.map(stack, frames[1], frames[0])
         nb_poses = jax.tree.map(stack, poses[1], poses[0])
@@ -155,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         compile_s[key], t = _timed(step, frames[2], poses[2], nb_gs, nb, nb_poses, repeats=max(1, args.repeats // 2))
         out[key + "_s"] = t
         if downscale == 1:  # per input frame at the data's default preset's keyframe spacing
-            out["map_every"] = resolve_config(None, path or None).map.every
+            out["map_every"] = cfg.every
             out[f"map_s_per_input_frame_{size}"] = t / out["map_every"]
     out["compile_s"] = sum(compile_s.values())
     out["compile_s_by_entry"] = compile_s

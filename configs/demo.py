@@ -8,5 +8,5 @@ def get_config() -> SLAMConfig:
         name="demo",
         data=DataConfig(path="", layout="synthetic"),
         track=TrackConfig(stride=4, k=15),
-        map=MapConfig(iterations=30),  # a quick first run; the dataset presets keep the paper's 100
+        map=MapConfig(iterations=30),  # a quick first run; the dataset presets use 40 (the paper's 100)
     )

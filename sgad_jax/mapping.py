@@ -185,6 +185,28 @@ def view_loss(
     return loss
 
 
+def fit_colours(
+    g: PixelGaussians, pose: lie.SE3, target: Float[Array, "h w 3"], intr: Intrinsics, background: splat.Render | None,
+    steps: int, *, window: int = 3, own_offsets: bool = False,
+) -> PixelGaussians:
+    """Fit the colours to the own view by ``steps`` minimal-residual steps. There the render over
+    the fixed ``background`` is ``A c + b``, linear in the colours ``c`` with ``A`` the blending
+    of the frame's Gaussians; each step moves ``c`` along the residual ``r = target - A c - b`` by
+    the ``alpha`` that minimises ``|r - alpha A r|``, so the residual never grows."""
+    go = g if own_offsets else dataclasses.replace(g, offset=jnp.zeros_like(g.offset))
+
+    def blend(c):
+        return splat.render_own(dataclasses.replace(go, rgb=c), pose, intr, window=window)
+
+    def step(_, c):
+        r = target - render_frame(dataclasses.replace(go, rgb=c), pose, background, intr, window=window).rgb
+        ar = blend(r).rgb
+        alpha = jnp.sum(r * ar) / jnp.maximum(jnp.sum(ar * ar), 1e-12)
+        return c + alpha * r
+
+    return dataclasses.replace(g, rgb=jax.lax.fori_loop(0, steps, step, g.rgb))
+
+
 def map_frame(
     cfg: MapConfig,
     g: PixelGaussians,
@@ -196,7 +218,8 @@ def map_frame(
     window: int = 3,
 ) -> tuple[PixelGaussians, MapInfo]:
     """Optimise a frame's Gaussians ``g`` (at camera-to-world ``pose``) for ``cfg.iterations`` Adam
-    steps on its own view and its neighbours' (``views``, own view first).
+    steps on its own view and its neighbours' (``views``, own view first), then fit the colours to
+    the own view in ``cfg.colour_fit`` steps (:func:`fit_colours`).
 
     ``background`` is the neighbours' (fixed) Gaussians rendered into the own view; the frame's
     Gaussians are composited over it there, as in :func:`render_frame`. The own view is the
@@ -228,6 +251,8 @@ def map_frame(
     # the start (under shard_map a scan's carry must keep its manual-axis type).
     state = jax.tree.map(lambda x: jnp.where(present[0], x, x), opt.init(g))
     (g, _), (loss, used) = jax.lax.scan(step, (g, state), schedule)
+    if cfg.colour_fit:
+        g = fit_colours(g, pose, views.rgb[0], intr, background, cfg.colour_fit, window=window, own_offsets=cfg.offset_in_own_view)
     return g, MapInfo(loss=loss, view=used)
 
 

@@ -68,6 +68,24 @@ def test_mapping_loss_decreases(room):
     assert float(after) < 0.5 * float(before)
 
 
+@pytest.mark.parametrize("radius_init", ["extent", "sigma"])
+def test_colour_fit_matches_the_own_view_and_never_grows_the_residual(room, radius_init):
+    """The own view over its neighbour's render is linear in the colours: the fit drives it to the
+    measured image, and with 3x wider footprints (a badly conditioned blend, where plain fixed-point
+    steps diverge) its error still never grows."""
+    intr, frames, poses = room
+    g0 = mapping.init_gaussians(frames[1], intr, radius_init=radius_init)
+    bg = splat.render(jax.tree.map(lambda x: x[None], mapping.init_gaussians(frames[0], intr)), jax.tree.map(lambda x: x[None], poses[0]), poses[1], intr, layers=1)
+    fit = jax.jit(mapping.fit_colours, static_argnums=5)
+    errors = []
+    for steps in range(4):
+        rgb = splat.over(splat.render_own(fit(g0, poses[1], frames[1].rgb, intr, bg, steps), poses[1], intr), bg).rgb
+        errors.append(float(jnp.mean((rgb - frames[1].rgb) ** 2)))
+    assert all(b <= a * (1 + 1e-5) for a, b in zip(errors, errors[1:])), errors
+    if radius_init == "extent":
+        assert -10 * np.log10(errors[-1]) > 45 and errors[-1] < 1e-2 * errors[0], errors
+
+
 @pytest.mark.slow
 def test_offsets_stay_fixed_in_the_ablation_and_do_not_spoil_the_own_view_fit(room):
     """The ablation keeps every offset at 0; and fitted to its own view alone, a frame with offsets
