@@ -1,6 +1,6 @@
 """The built-in synthetic room (no download): the default of `sgad-jax run`."""
 
-from sgad_jax.config import DataConfig, MapConfig, SLAMConfig, TrackConfig
+from sgad_jax.config import DataConfig, SLAMConfig, TrackConfig
 
 
 def get_config() -> SLAMConfig:
@@ -8,5 +8,4 @@ def get_config() -> SLAMConfig:
         name="demo",
         data=DataConfig(path="", layout="synthetic"),
         track=TrackConfig(stride=4, k=15),
-        map=MapConfig(iterations=30),  # a quick first run; the dataset presets use 40 (the paper's 100)
     )

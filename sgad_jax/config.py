@@ -138,9 +138,10 @@ class TrackConfig:
 class MapConfig:
     """Appearance branch (pixel-aligned Gaussians at adjusted depth); paper hyper-parameters."""
 
-    # Adam steps a mapped frame (the paper's 100): on a CPU 40 and the colour fit below render
-    # held-out views as well in 0.4 of the time (docs/method.md, "Mapping")
-    iterations: int = 40
+    # Adam steps a mapped frame (the paper's 100): 15, with the radius and opacity rates scaled to
+    # travel as far (mapping.reach_scale), and the colour fit below render held-out views as well
+    # in 0.15 of the time (docs/method.md, "Iterations per frame and the colour fit")
+    iterations: int = 15
     neighbours: int = 2
     neighbour_gap: int = 1  # the neighbours are every gap-th previous mapped frame (1: the last ones, as the paper)
     # Map every K-th tracked frame (keyframes; neighbours are counted among them); the frames between

@@ -15,7 +15,7 @@ from sgad_jax.config import DataConfig, MapConfig, SyntheticConfig
 from sgad_jax.mapper import neighbour_slots
 from sgad_jax.system import compile_step
 from sgad_jax.io.synthetic import SyntheticDataset
-from sgad_jax.types import Intrinsics, make_frame
+from sgad_jax.types import Intrinsics, PixelGaussians, make_frame
 
 
 @pytest.fixture(scope="module")
@@ -183,7 +183,11 @@ def test_missing_neighbours_iterations_change_nothing(room):
     g, info = jax.jit(mapping.map_frame, static_argnums=0)(cfg, g0, poses[1], views, intr)
     own = int(np.sum(mapping.view_schedule(cfg, 3) == 0))
     assert 0 < own < cfg.iterations and set(np.asarray(info.view).tolist()) == {0, -1}
-    ref, _ = jax.jit(mapping.map_frame, static_argnums=0)(dataclasses.replace(cfg, iterations=own), g0, poses[1], _views(frames, poses, [1]), intr)
+    # The reference's radius and opacity rates as the 12 iterations scale them (mapping.reach_scale)
+    ref_cfg = dataclasses.replace(cfg, iterations=own)
+    k = mapping.reach_scale(cfg) / mapping.reach_scale(ref_cfg)
+    ref_cfg = dataclasses.replace(ref_cfg, lr_radius=cfg.lr_radius * k, lr_opacity=cfg.lr_opacity * k)
+    ref, _ = jax.jit(mapping.map_frame, static_argnums=0)(ref_cfg, g0, poses[1], _views(frames, poses, [1]), intr)
     for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(ref)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
 
@@ -290,3 +294,19 @@ def test_map_step_compiles_once_for_a_sequence(room):
         _, out, _ = step(frames[i], poses[i], nb_gs, nb, nb_poses, jnp.asarray(present))
         assert np.isfinite(np.asarray(out.rgb)).all()
     chex.clear_trace_counter()
+
+
+def test_fewer_iterations_scale_the_radius_and_opacity_steps():
+    """Adam's first step moves each parameter by its rate; with fewer than the paper's 100
+    iterations the radius and opacity rates are raised by 100 / iterations, the others not."""
+    z = jnp.zeros((2, 2))
+    g = PixelGaussians(rgb=jnp.zeros((2, 2, 3)), log_radius=z, opacity_logit=z, offset=z, depth=z)
+    grad = jax.tree.map(jnp.ones_like, g)
+    for iterations, scale in ((100, 1.0), (400, 1.0), (20, 5.0), (15, 100 / 15)):
+        cfg = MapConfig(iterations=iterations)
+        opt = mapping.optimizer(cfg)
+        step, _ = opt.update(grad, opt.init(g), g)
+        np.testing.assert_allclose(np.asarray(step.log_radius), -cfg.lr_radius * scale, rtol=1e-4)
+        np.testing.assert_allclose(np.asarray(step.opacity_logit), -cfg.lr_opacity * scale, rtol=1e-4)
+        np.testing.assert_allclose(np.asarray(step.rgb), -cfg.lr_rgb, rtol=1e-4)
+        np.testing.assert_allclose(np.asarray(step.offset), -cfg.lr_offset, rtol=1e-4)
