@@ -1,10 +1,10 @@
 """Where the time of one mapped frame goes, part by part, beside a floor for each part.
 
 One TUM frame at 640x480 with its 2 neighbours, as ``sgad-jax run`` maps it (``slam.map_step``,
-``map.iterations`` steps, 70% of them on the own view). Each part is jitted alone and timed as
+``map.iterations`` steps, 70% of them on the own view, then ``map.colour_fit``). Each part is jitted alone and timed as
 the median of ``--repeats`` calls after a warm-up call: the own-view step (render forward and
 backward, loss forward and backward, the whole step), the neighbour-view step, the Adam update,
-the neighbours' background render, then the host work after mapping (image metrics, PNG and npz
+the neighbours' background render, the colour fit after the Adam steps, then the host work after mapping (image metrics, PNG and npz
 writes). ``step_share_s`` is each step's time times the number of iterations that take it.
 
 The compute floor of a jitted part is its FLOPs (XLA's cost analysis) over the machine's measured
@@ -178,6 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     opt = mapping.optimizer(cfg)
     part("adam_update", lambda g, s: optax.apply_updates(g, opt.update(g, s, g)[0]), g0, opt.init(g0))
     part("frame_render", lambda g: mapping.render_frame(g, pose, background, intr), g0)
+    if cfg.colour_fit:
+        part("colour_fit", lambda g: mapping.fit_colours(g, pose, frame.rgb, intr, background, cfg.colour_fit).rgb, g0)
 
     schedule = mapping.view_schedule(cfg, 3)
     own_steps = int((schedule == 0).sum())
