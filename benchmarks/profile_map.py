@@ -1,11 +1,12 @@
 """Where the time of one mapped frame goes, part by part, beside a floor for each part.
 
 One TUM frame at 640x480 with its 2 neighbours, as ``sgad-jax run`` maps it (``slam.map_step``,
-``map.iterations`` steps, 70% of them on the own view, then ``map.colour_fit``). Each part is jitted alone and timed as
-the median of ``--repeats`` calls after a warm-up call: the own-view step (render forward and
-backward, loss forward and backward, the whole step), the neighbour-view step, the Adam update,
-the neighbours' background render, the colour fit after the Adam steps, then the host work after mapping (image metrics, PNG and npz
-writes). ``step_share_s`` is each step's time times the number of iterations that take it.
+``map.iterations`` steps, 70% of them on the own view, then ``map.colour_fit``). Each part is
+jitted alone and timed as the median of ``--repeats`` calls after a warm-up call: the own-view
+step (render forward and backward, loss forward and backward, the whole step), the neighbour-view
+step, the Adam update, the neighbours' background render, the colour fit, then the host work after
+mapping (image metrics, PNG and npz writes). ``step_share_s`` is each step's time times the
+number of iterations that take it.
 
 The compute floor of a jitted part is its FLOPs (XLA's cost analysis) over the machine's measured
 peak (a large float32 matrix product): the time the part would take if its arithmetic ran at the
