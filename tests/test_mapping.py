@@ -298,11 +298,12 @@ def test_map_step_compiles_once_for_a_sequence(room):
 
 def test_fewer_iterations_scale_the_radius_and_opacity_steps():
     """Adam's first step moves each parameter by its rate; with fewer than the paper's 100
-    iterations the radius and opacity rates are raised by 100 / iterations, the others not."""
+    iterations the radius and opacity rates are raised by 100 / iterations (at most 100 / 15), the
+    others not."""
     z = jnp.zeros((2, 2))
     g = PixelGaussians(rgb=jnp.zeros((2, 2, 3)), log_radius=z, opacity_logit=z, offset=z, depth=z)
     grad = jax.tree.map(jnp.ones_like, g)
-    for iterations, scale in ((100, 1.0), (400, 1.0), (20, 5.0), (15, 100 / 15)):
+    for iterations, scale in ((100, 1.0), (400, 1.0), (20, 5.0), (15, 100 / 15), (5, 100 / 15)):
         cfg = MapConfig(iterations=iterations)
         opt = mapping.optimizer(cfg)
         step, _ = opt.update(grad, opt.init(g), g)

@@ -218,7 +218,8 @@ def test_finetune_step_is_adam_on_the_present_frames():
     depth = jnp.asarray(rng.uniform(1, 3, (H, W)), jnp.float32)
     valid = jnp.ones((H, W), bool)
     view = lie.exp(jnp.zeros(6, jnp.float32))
-    cfg = MapConfig(offset_at_invalid=True, offset_bound=0.0)
+    # The paper's 100 steps: mapping.optimizer's rates unscaled, as the refinement's are
+    cfg = MapConfig(iterations=mapping.PAPER_ITERATIONS, offset_at_invalid=True, offset_bound=0.0)
     new, state, loss = scene.finetune_step(cfg, gs, scene.adam_init(gs), poses, present, rgb, depth, valid, view, intr, layers=6, offsets=True)
     bounded, _, _ = scene.finetune_step(MapConfig(offset_at_invalid=True, offset_bound=1e-4), gs, scene.adam_init(gs), poses, present, rgb, depth, valid, view, intr, layers=6, offsets=True)
     limit = 1e-4 * np.asarray(gs.depth[0], np.float64) ** 2
