@@ -17,7 +17,7 @@ import os
 import sys
 
 from sgad_jax.config import ConfigError, apply_overrides, load_preset
-from sgad_jax.io.base import DatasetError
+from sgad_jax.io.base import DatasetError, RunInterrupted
 
 
 DEFAULT_CACHE = "~/.cache/sgad_jax/xla"
@@ -248,6 +248,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, DatasetError) as err:
         print(f"sgad-jax: error: {err}", file=sys.stderr)
         return 2
+    except RunInterrupted as err:  # 128 + the signal's number, as a shell reports it
+        print(f"sgad-jax: {err}; wrote {args.out}/trajectory.txt and {args.out}/metrics.json", file=sys.stderr)
+        return 128 + err.signum
     m = result.metrics
     keys = ("frames", "ate_rmse_cm", "ate_mean_cm", "track_ms_median", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "nvs_psnr_before_finetune", "nvs_psnr", "nvs_ssim", "nvs_lpips", "map_s_per_frame", "compile_s", "peak_rss_mb")
     summary = {k: m[k] for k in keys if k in m}

@@ -11,19 +11,22 @@ Outputs in ``out_dir``:
                         trajectory, and the mapping time per frame.
     ``renders/``        with ``save_renders``: ``rgb_XXXXXX.png`` and ``depth_XXXXXX.png`` (16-bit,
                         millimetres) of every frame, XXXXXX its 0-based index in the run.
-Both are written when the run ends, including when it stops early on bad input (then with
-``"stopped": "<the error>"``), so that no computed result is lost.
+Both are written when the run ends, including when it stops early on bad input or on SIGINT /
+SIGTERM between frames (then with ``"stopped": "<why>"``), so that no computed result is lost.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
 import pathlib
 import resource
 import shutil
+import signal
 import sys
+import threading
 import time
 
 import jax
@@ -35,7 +38,7 @@ from sgad_jax import checkpoint
 from sgad_jax.config import ConfigError, SLAMConfig, to_dict
 from sgad_jax.distributed import frames_mesh
 from sgad_jax.eval.ate import ate, rpe
-from sgad_jax.io.base import BadFrame, Dataset, DatasetError
+from sgad_jax.io.base import BadFrame, Dataset, DatasetError, RunInterrupted
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import write_tum_trajectory
 from sgad_jax.io.files import write_bytes, write_json
@@ -49,6 +52,40 @@ class RunResult:
     timestamps: np.ndarray
     metrics: dict
     live: object = None  # the live viewer (sgad_jax.viewer.LiveView) when one was asked for
+
+
+@contextlib.contextmanager
+def _stop_requests(enabled: bool):
+    """While frames are tracked: the first SIGINT or SIGTERM only asks the loop to stop after the
+    frame in hand (the signal's number is appended to the list yielded), so that the state is
+    whole when it is written and checkpointed; a second acts as it would without this (Ctrl-C
+    raises KeyboardInterrupt). A signal the process ignores (a background job's SIGINT) stays
+    ignored. Only in the main thread of a one-process run: the processes of a multi-process run
+    must stop together, which a signal to one of them cannot arrange."""
+    requested: list[int] = []
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield requested
+        return
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    previous = {s: h for s, h in previous.items() if h is not signal.SIG_IGN}
+
+    def handler(signum, frame):
+        if not requested:
+            requested.append(signum)
+            return
+        signal.signal(signum, previous[signum])
+        if callable(previous[signum]):
+            previous[signum](signum, frame)
+        else:
+            signal.raise_signal(signum)
+
+    for s in previous:
+        signal.signal(s, handler)
+    try:
+        yield requested
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
 
 
 def peak_rss_mb() -> float:
@@ -111,8 +148,12 @@ def run(
     ``viewer`` (host, port) serves the run live in a browser (:class:`sgad_jax.viewer.LiveView`,
     returned in the result).
 
+    The first SIGINT (Ctrl-C) or SIGTERM stops the run after the frame in hand, as a bad frame does
+    with ``"stop"`` (written, and checkpointed at the next frame), then raises RunInterrupted.
+
     Raises:
         DatasetError: on bad input (after writing whatever was computed before it).
+        RunInterrupted: on SIGINT or SIGTERM (after the same).
         ConfigError: when the checkpoint to resume was made with another config or dataset.
     """
     if on_bad_frame not in ("stop", "skip"):
@@ -168,43 +209,52 @@ def run(
         meta.update(kept=kept, skipped=skipped, next=next_frame)
         checkpoint.save(ckpt_root, next_frame, arrays, {"identity": identity, "run": meta})
 
-    stopped = None
+    stopped, interrupted = None, None
     rss_trace = []
     t_run = time.perf_counter()
     what = "tracking" if track_only else "tracking + mapping"
     bar = tqdm(total=len(ds), initial=start, desc=f"{what} {ds.name}", unit="frame", disable=not (progress and main), file=sys.stderr)
-    try:
-        # `fill`: the frames the system will map, by run index (a skipped frame shifts the system's
-        # count; a wrong guess only moves a frame's inpainting back to the main thread or wastes it).
-        for sample in ds.frames(start, skip_bad=True, fill=system.maps):
-            i = sample.index
-            problem = sample.reason if isinstance(sample, BadFrame) else _timestamp_problem(ds, sample, system.stamps)
-            if problem and on_bad_frame == "stop":
-                stopped = problem
-                if ckpt_root is not None and checkpoint_every > 0 and i > 0:
-                    save_checkpoint(i)  # resumable from the bad frame once it is fixed
-                break
-            if problem:
-                skipped.append({"index": i, "source_index": sample.source_index, "reason": problem})
-                if main:
-                    tqdm.write(f"sgad-jax: skipped: {problem}", file=sys.stderr)
-            else:
-                try:
-                    pose = system.add(sample)
-                except TrackingDiverged as err:
-                    raise DatasetError(f"{ds.name} frame {sample.source_index}: {err}") from None
-                kept.append(i)
-                if live is not None:
-                    live.frame(len(system) - 1, pose, sample)
-            bar.update(1)
-            if (i + 1) % RSS_EVERY == 0:
-                rss_trace.append([i + 1, current_rss_mb()])
-            if ckpt_root is not None and checkpoint_every > 0 and (i + 1) % checkpoint_every == 0 and i + 1 < len(ds):
-                save_checkpoint(i + 1)
-    except DatasetError as err:
-        stopped = str(err)
-    finally:
-        bar.close()
+    with _stop_requests(jax.process_count() == 1) as requests:
+        try:
+            # `fill`: the frames the system will map, by run index (a skipped frame shifts the system's
+            # count; a wrong guess only moves a frame's inpainting back to the main thread or wastes it).
+            for sample in ds.frames(start, skip_bad=True, fill=system.maps):
+                i = sample.index
+                problem = sample.reason if isinstance(sample, BadFrame) else _timestamp_problem(ds, sample, system.stamps)
+                if problem and on_bad_frame == "stop":
+                    stopped = problem
+                    if ckpt_root is not None and checkpoint_every > 0 and i > 0:
+                        save_checkpoint(i)  # resumable from the bad frame once it is fixed
+                    break
+                if problem:
+                    skipped.append({"index": i, "source_index": sample.source_index, "reason": problem})
+                    if main:
+                        tqdm.write(f"sgad-jax: skipped: {problem}", file=sys.stderr)
+                else:
+                    try:
+                        pose = system.add(sample)
+                    except TrackingDiverged as err:
+                        raise DatasetError(f"{ds.name} frame {sample.source_index}: {err}") from None
+                    kept.append(i)
+                    if live is not None:
+                        live.frame(len(system) - 1, pose, sample)
+                bar.update(1)
+                if (i + 1) % RSS_EVERY == 0:
+                    rss_trace.append([i + 1, current_rss_mb()])
+                saving = ckpt_root is not None and checkpoint_every > 0
+                due = saving and (i + 1) % checkpoint_every == 0 and i + 1 < len(ds)
+                if due or (saving and requests):
+                    save_checkpoint(i + 1)
+                if requests:  # SIGINT / SIGTERM: stop here, with the state whole
+                    interrupted = requests[0]
+                    stopped = f"interrupted by {signal.Signals(interrupted).name} after {i + 1} of {len(ds)} frames"
+                    if saving:
+                        stopped += f"; --resume continues from frame {i + 1}"
+                    break
+        except DatasetError as err:
+            stopped = str(err)
+        finally:
+            bar.close()
 
     metrics = {"frames": len(system), "dataset": ds.name, "layout": ds.layout}
     run_metrics = system.finish()
@@ -243,6 +293,8 @@ def run(
         intr = ds.intrinsics
         write_json(out / "cameras.json", {"width": intr.width, "height": intr.height, "fx": float(intr.fx), "fy": float(intr.fy), "cx": float(intr.cx), "cy": float(intr.cy)})
         write_json(out / "metrics.json", metrics)
+    if interrupted:
+        raise RunInterrupted(stopped, interrupted)
     if stopped:
         raise DatasetError(stopped)
     return RunResult(poses=poses_np, timestamps=stamps_np, metrics=metrics, live=live)

@@ -12,7 +12,7 @@ import jax
 import numpy as np
 import pytest
 
-from sgad_jax import lie, mapping, programs, slam, splat
+from sgad_jax import lie, mapping, pipeline, programs, slam, splat
 from sgad_jax.cli import main, resolve_config
 from sgad_jax.distributed import BatchMapper
 from sgad_jax.io.datasets import open_dataset
@@ -171,6 +171,66 @@ def test_resume_after_sigkill_matches_uninterrupted_run(tmp_path, reference_run)
     assert m["resumed_from_frame"] == newest
     # (the killed write's temporary file, `.frame_000005.<pid>.npz`, stays behind: not matched here)
     assert sorted(p.name for p in (out / "gaussians").glob("frame_*.npz")) == [f"frame_{i:06d}.npz" for i in range(8)]
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_between_frames_and_resume_matches_uninterrupted_run(tmp_path, reference_run):
+    """SIGINT (Ctrl-C) while the 6th frame is processed: exit status 130, one line, the 6 frames'
+    trajectory and metrics written and checkpointed (off the --checkpoint-every schedule; at a
+    mapping batch's end, as a checkpoint maps the queued frames); --resume then gives the
+    uninterrupted run's trajectory and scores."""
+    code = """
+import signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (pytest's workers ignore it)
+from sgad_jax.system import SLAM
+real_add = SLAM.add
+def add(self, sample):
+    pose = real_add(self, sample)
+    if len(self.poses) == 6:
+        signal.raise_signal(signal.SIGINT)  # as a Ctrl-C while the 6th frame is processed
+    return pose
+SLAM.add = add
+from sgad_jax.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+    out = tmp_path / "interrupted"
+    args = ["run", "--quiet", *TINY_ARGS, "--out", str(out), "--checkpoint-every", "4"]
+    proc = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert proc.returncode == 128 + signal.SIGINT, proc.stderr[-2000:]
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "interrupted by SIGINT after 6 of 8 frames" in lines[0] and "--resume" in lines[0]
+    poses, m = _results(out)
+    assert len(poses) == 6 and m["frames"] == 6 and m["stopped"].startswith("interrupted by SIGINT")
+    assert _steps(out) == [4, 6]
+    ref_poses, ref_m = reference_run
+    assert main(["run", "--quiet", *TINY_ARGS, "--out", str(out), "--checkpoint-every", "4", "--resume"]) == 0
+    poses, m = _results(out)
+    np.testing.assert_allclose(poses, ref_poses, atol=1e-6)
+    for key in ("ate_rmse_cm", "psnr", "ssim", "depth_l1_cm", "mapped_frames", "frames", "gaussians_total"):
+        assert abs(m[key] - ref_m[key]) <= 1e-4, (key, m[key], ref_m[key])
+    assert m["resumed_from_frame"] == 6 and "stopped" not in m
+
+
+def test_first_stop_signal_is_a_request_and_a_second_ctrl_c_aborts():
+    original = signal.getsignal(signal.SIGINT)
+    try:
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal
+        before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+        with pipeline._stop_requests(True) as requests:
+            signal.raise_signal(signal.SIGTERM)  # as from a job scheduler: recorded, nothing raised
+            assert requests == [signal.SIGTERM]
+            with pytest.raises(KeyboardInterrupt):
+                signal.raise_signal(signal.SIGINT)
+        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+        with pipeline._stop_requests(False) as requests:  # multi-process runs: signals act as usual
+            assert signal.getsignal(signal.SIGTERM) == before[1]
+        assert requests == []
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job's: stays ignored
+        with pipeline._stop_requests(True) as requests:
+            signal.raise_signal(signal.SIGINT)
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN and requests == []
+    finally:
+        signal.signal(signal.SIGINT, original)
 
 
 @pytest.mark.slow

@@ -30,6 +30,14 @@ class DatasetError(Exception):
     """Bad input: the message is one line naming the file and the problem."""
 
 
+class RunInterrupted(Exception):
+    """SIGINT (Ctrl-C) or SIGTERM stopped a run between frames; what it computed is written."""
+
+    def __init__(self, message: str, signum: int):
+        super().__init__(message)
+        self.signum = signum
+
+
 @dataclasses.dataclass(frozen=True)
 class BadFrame:
     """A frame that could not be read (yielded by :meth:`Dataset.frames` with ``skip_bad``)."""
