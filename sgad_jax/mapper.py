@@ -180,12 +180,13 @@ class Mapper:
             recs.append(self._score(index, host_frame(source(index), fill=False), out.rgb, np.asarray(splat.surface_depth(out)), kind=kind, mapped=False))
         return recs
 
-    def finetune(self, iterations: int, poses: np.ndarray, source, seed: int) -> dict:
+    def finetune(self, iterations: int, poses: np.ndarray, source, seed: int, stop=None) -> dict:
         """The merged-map refinement: ``iterations`` Adam steps, each on a random mapped frame's
-        view rendered from its ``scene.frames`` best-covering frames, all of whose Gaussians move.
-        Every mapped frame's Gaussians and Adam moments are held in host memory meanwhile; the
-        refined Gaussians replace the stored ones. Returns the step count, the seconds it took and
-        the mean loss of its first and last 50 steps. (Call with the queue mapped.)"""
+        view rendered from its ``scene.frames`` best-covering frames, all of whose Gaussians move;
+        fewer when ``stop()`` turns true (a Ctrl-C). Every mapped frame's Gaussians and Adam
+        moments are held in host memory meanwhile; the refined Gaussians replace the stored ones.
+        Returns the steps taken, the seconds they took and the mean loss of the first and last 50.
+        (Call with the queue mapped.)"""
         mapped = sorted(self.scene.poses)
         if not mapped or iterations <= 0:
             return {}
@@ -196,6 +197,8 @@ class Mapper:
         chosen_of = {i: self.scene.frames_for(poses[i]) for i in mapped}
         losses, t0 = [], time.perf_counter()
         for _ in tqdm(range(iterations), desc="refining the merged map", unit="step", disable=not (self.progress and self.main), file=sys.stderr):
+            if stop is not None and stop():
+                break
             view = mapped[rng.integers(len(mapped))]
             chosen = chosen_of[view]
             gs, ps, present = self.scene.stack(chosen, params.__getitem__)
@@ -214,7 +217,8 @@ class Mapper:
             self.store.put(i, params[i], self.scene.poses[i])
         if not self.store.temporary:
             self.store.flush()  # the files on disk are the refined Gaussians
-        return {"finetune_iterations": iterations, "finetune_s": time.perf_counter() - t0, "finetune_loss_first": float(np.mean(losses[:50])), "finetune_loss_last": float(np.mean(losses[-50:]))}
+        first, last = (float(np.mean(part)) if losses else None for part in (losses[:50], losses[-50:]))
+        return {"finetune_iterations": len(losses), "finetune_s": time.perf_counter() - t0, "finetune_loss_first": first, "finetune_loss_last": last}
 
     def metrics(self) -> dict:
         out = means(self.per_frame)

@@ -56,10 +56,10 @@ class RunResult:
 
 @contextlib.contextmanager
 def _stop_requests(enabled: bool):
-    """While frames are tracked: the first SIGINT or SIGTERM only asks the loop to stop after the
-    frame in hand (the signal's number is appended to the list yielded), so that the state is
-    whole when it is written and checkpointed; a second acts as it would without this (Ctrl-C
-    raises KeyboardInterrupt). A signal the process ignores (a background job's SIGINT) stays
+    """While a run tracks, maps and refines: the first SIGINT or SIGTERM only asks it to stop after
+    the frame or refinement step in hand (the signal's number is appended to the list yielded), so
+    that the state is whole when it is written and checkpointed; a second acts as it would
+    without this (Ctrl-C raises KeyboardInterrupt). A signal the process ignores (a background job's SIGINT) stays
     ignored. Only in the main thread of a one-process run: the processes of a multi-process run
     must stop together, which a signal to one of them cannot arrange."""
     requested: list[int] = []
@@ -149,7 +149,8 @@ def run(
     returned in the result).
 
     The first SIGINT (Ctrl-C) or SIGTERM stops the run after the frame in hand, as a bad frame does
-    with ``"stop"`` (written, and checkpointed at the next frame), then raises RunInterrupted.
+    with ``"stop"`` (written, and checkpointed at the next frame), or ends the refinement after the
+    step in hand (the held-out views scored as it is), then raises RunInterrupted.
 
     Raises:
         DatasetError: on bad input (after writing whatever was computed before it).
@@ -256,14 +257,18 @@ def run(
         finally:
             bar.close()
 
-    metrics = {"frames": len(system), "dataset": ds.name, "layout": ds.layout}
-    run_metrics = system.finish()
-    # Every input frame tracked, mapped or rendered from the scene, and scored; compilation apart.
-    compiled = (run_metrics.get("compile_s") or 0.0) + (run_metrics.get("map_compile_s") or 0.0)
-    if len(system) > start:
-        run_metrics["s_per_input_frame"] = (time.perf_counter() - t_run - compiled) / (len(system) - start)
-    if not stopped:
-        run_metrics.update(system.judge_scene(finetune))
+        metrics = {"frames": len(system), "dataset": ds.name, "layout": ds.layout}
+        run_metrics = system.finish()
+        # Every input frame tracked, mapped or rendered from the scene, and scored; compilation apart.
+        compiled = (run_metrics.get("compile_s") or 0.0) + (run_metrics.get("map_compile_s") or 0.0)
+        if len(system) > start:
+            run_metrics["s_per_input_frame"] = (time.perf_counter() - t_run - compiled) / (len(system) - start)
+        if not stopped:
+            run_metrics.update(system.judge_scene(finetune, stop=lambda: bool(requests)))
+            done = run_metrics.get("finetune_iterations", finetune)
+            if requests and done < finetune:  # the refinement was cut short (its views scored as it was)
+                interrupted = requests[0]
+                stopped = f"interrupted by {signal.Signals(interrupted).name} after all {len(ds)} frames, in the refinement ({done} of {finetune} steps)"
     poses_np = system.trajectory()
     stamps_np = np.asarray(system.stamps, np.float64)
     gt = ds.gt_poses[kept]

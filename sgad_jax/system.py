@@ -233,10 +233,11 @@ class SLAM:
             metrics.update(self.mapper.metrics())
         return metrics
 
-    def judge_scene(self, finetune: int = 0) -> dict:
+    def judge_scene(self, finetune: int = 0, stop=None) -> dict:
         """Score the held-out views rendered from the scene at their estimated poses (``nvs_*``
         means, and ``nvs_per_frame``); with ``finetune`` > 0 refine the merged map first, keeping
-        the scores before it as ``nvs_*_before_finetune``. Call after :meth:`finish`."""
+        the scores before it as ``nvs_*_before_finetune``; the refinement ends early once ``stop()``
+        is true. Call after :meth:`finish`."""
         if self.mapper is None:
             return {}
         if finetune > 0 and self.source is None:
@@ -249,7 +250,7 @@ class SLAM:
         if finetune > 0:
             if scores:
                 out.update({f"{k}_before_finetune": v for k, v in means(scores, "nvs_").items()})
-            out.update(self.mapper.finetune(finetune, poses, source, self.cfg.seed))
+            out.update(self.mapper.finetune(finetune, poses, source, self.cfg.seed, stop=stop))
             scores = self.mapper.score_views(self.holdout, poses, source)
         if self.holdout_every:
             out.update(means(scores, "nvs_"), nvs_per_frame=scores)

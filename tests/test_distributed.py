@@ -12,7 +12,7 @@ import jax
 import numpy as np
 import pytest
 
-from sgad_jax import lie, mapping, pipeline, programs, slam, splat
+from sgad_jax import lie, mapping, pipeline, programs, scene, slam, splat
 from sgad_jax.cli import main, resolve_config
 from sgad_jax.distributed import BatchMapper
 from sgad_jax.io.datasets import open_dataset
@@ -209,6 +209,32 @@ sys.exit(main(sys.argv[1:]))
     for key in ("ate_rmse_cm", "psnr", "ssim", "depth_l1_cm", "mapped_frames", "frames", "gaussians_total"):
         assert abs(m[key] - ref_m[key]) <= 1e-4, (key, m[key], ref_m[key])
     assert m["resumed_from_frame"] == 6 and "stopped" not in m
+
+
+@pytest.mark.slow
+def test_sigterm_in_the_refinement_ends_it_and_keeps_the_run(tmp_path, monkeypatch):
+    """SIGTERM during the merged-map refinement (as from a job scheduler): the step in hand ends
+    it, the held-out views are scored as refined so far, everything is written, exit status 143."""
+    real, calls = scene.finetune_step, []
+
+    def step(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            signal.raise_signal(signal.SIGTERM)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(scene, "finetune_step", step)
+    original = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        out = tmp_path / "refined"
+        code = main(["run", "--quiet", *TINY_ARGS, "--out", str(out), "--holdout-every", "4", "--finetune", "6", "--checkpoint-every", "0"])
+    finally:
+        signal.signal(signal.SIGTERM, original)
+    assert code == 128 + signal.SIGTERM
+    poses, m = _results(out)
+    assert len(poses) == m["frames"] == 8 and len(calls) == m["finetune_iterations"] == 2
+    assert "interrupted by SIGTERM after all 8 frames, in the refinement (2 of 6 steps)" == m["stopped"]
+    assert m["nvs_frames"] == 1 and m["nvs_psnr"] > 20 and m["nvs_psnr_before_finetune"] > 20
 
 
 def test_first_stop_signal_is_a_request_and_a_second_ctrl_c_aborts():
