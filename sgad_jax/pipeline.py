@@ -12,7 +12,7 @@ Outputs in ``out_dir``:
     ``renders/``        with ``save_renders``: ``rgb_XXXXXX.png`` and ``depth_XXXXXX.png`` (16-bit,
                         millimetres) of every frame, XXXXXX its 0-based index in the run.
 Both are written when the run ends, including when it stops early on bad input or on SIGINT /
-SIGTERM between frames (then with ``"stopped": "<why>"``), so that no computed result is lost.
+SIGTERM (then with ``"stopped": "<why>"``), so that no computed result is lost.
 """
 
 from __future__ import annotations
@@ -59,9 +59,9 @@ def _stop_requests(enabled: bool):
     """While a run tracks, maps and refines: the first SIGINT or SIGTERM only asks it to stop after
     the frame or refinement step in hand (the signal's number is appended to the list yielded), so
     that the state is whole when it is written and checkpointed; a second acts as it would
-    without this (Ctrl-C raises KeyboardInterrupt). A signal the process ignores (a background job's SIGINT) stays
-    ignored. Only in the main thread of a one-process run: the processes of a multi-process run
-    must stop together, which a signal to one of them cannot arrange."""
+    without this (Ctrl-C raises KeyboardInterrupt). A signal the process ignores (a background
+    job's SIGINT) stays ignored. Only in the main thread of a one-process run: the processes of a
+    multi-process run must stop together, which a signal to one of them cannot arrange."""
     requested: list[int] = []
     if not enabled or threading.current_thread() is not threading.main_thread():
         yield requested

@@ -31,7 +31,8 @@ class DatasetError(Exception):
 
 
 class RunInterrupted(Exception):
-    """SIGINT (Ctrl-C) or SIGTERM stopped a run between frames; what it computed is written."""
+    """SIGINT (Ctrl-C) or SIGTERM stopped a run after a frame or refinement step; what it computed
+    is written."""
 
     def __init__(self, message: str, signum: int):
         super().__init__(message)
