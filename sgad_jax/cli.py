@@ -42,7 +42,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--devices", type=int, default=None, help="map on N devices of this host (on CPU: N host devices); default: all (CPU: 1)")
     r.add_argument("--checkpoint-every", type=int, default=25, metavar="N", help="checkpoint the run every N frames in OUT/checkpoints (0: never; default 25)")
     r.add_argument("--on-bad-frame", choices=("stop", "skip"), default="stop", help="a frame that cannot be used (unreadable, truncated or missing file, no valid depth, NaN depth, bad timestamp): stop (exit status 2, resumable once fixed; default) or skip it (listed in metrics.json as skipped_frames)")
-    r.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint (same config and data)")
+    r.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint (same config and data); a Ctrl-C stops a run after the frame in hand and checkpoints it there")
     r.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="multi-process run: the coordinator's address (or $JAX_COORDINATOR_ADDRESS)")
     r.add_argument("--num-processes", type=int, default=None, help="multi-process run: number of processes (or $JAX_NUM_PROCESSES)")
     r.add_argument("--process-id", type=int, default=None, help="multi-process run: this process's id (or $JAX_PROCESS_ID)")
