@@ -215,6 +215,7 @@ def run(
     t_run = time.perf_counter()
     what = "tracking" if track_only else "tracking + mapping"
     bar = tqdm(total=len(ds), initial=start, desc=f"{what} {ds.name}", unit="frame", disable=not (progress and main), file=sys.stderr)
+    saving = ckpt_root is not None and checkpoint_every > 0
     with _stop_requests(jax.process_count() == 1) as requests:
         try:
             # `fill`: the frames the system will map, by run index (a skipped frame shifts the system's
@@ -224,7 +225,7 @@ def run(
                 problem = sample.reason if isinstance(sample, BadFrame) else _timestamp_problem(ds, sample, system.stamps)
                 if problem and on_bad_frame == "stop":
                     stopped = problem
-                    if ckpt_root is not None and checkpoint_every > 0 and i > 0:
+                    if saving and i > 0:
                         save_checkpoint(i)  # resumable from the bad frame once it is fixed
                     break
                 if problem:
@@ -242,7 +243,6 @@ def run(
                 bar.update(1)
                 if (i + 1) % RSS_EVERY == 0:
                     rss_trace.append([i + 1, current_rss_mb()])
-                saving = ckpt_root is not None and checkpoint_every > 0
                 due = saving and (i + 1) % checkpoint_every == 0 and i + 1 < len(ds)
                 if due or (saving and requests):
                     save_checkpoint(i + 1)
