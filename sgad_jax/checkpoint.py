@@ -10,13 +10,16 @@ leaves the previous complete checkpoint to resume from.
 
 from __future__ import annotations
 
+import os
 import pathlib
+import re
 
 import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
 from sgad_jax.config import ConfigError
+from sgad_jax.io.base import DatasetError
 
 
 def _manager(root: pathlib.Path) -> ocp.CheckpointManager:
@@ -25,9 +28,20 @@ def _manager(root: pathlib.Path) -> ocp.CheckpointManager:
 
 
 def save(root: pathlib.Path, step: int, arrays: dict[str, np.ndarray], meta: dict) -> None:
-    """Write checkpoint ``step`` (the number of frames done) under ``root``."""
-    with _manager(root) as mngr:
-        mngr.save(step, args=ocp.args.Composite(arrays=ocp.args.StandardSave(arrays), meta=ocp.args.JsonSave(meta)), force=True)
+    """Write checkpoint ``step`` (the number of frames done) under ``root``; DatasetError (one line)
+    when it cannot be written, e.g. on a full disk (the previous checkpoint stays)."""
+    try:
+        with _manager(root) as mngr:
+            mngr.save(step, args=ocp.args.Composite(arrays=ocp.args.StandardSave(arrays), meta=ocp.args.JsonSave(meta)), force=True)
+    except OSError as err:
+        raise DatasetError(f"{root}: cannot write checkpoint {step} ({err.strerror or err})") from None
+    except ValueError as err:  # tensorstore reports I/O failures as "STATUS_CODE: ..." ValueErrors
+        text = str(err)
+        if not re.match(r"[A-Z_]+: ", text):
+            raise
+        code = re.search(r"os_error_code='?(\d+)", text)
+        reason = os.strerror(int(code.group(1))) if code else text.split(":")[0]
+        raise DatasetError(f"{root}: cannot write checkpoint {step} ({reason})") from None
 
 
 def latest(root: pathlib.Path) -> tuple[dict[str, np.ndarray], dict] | None:

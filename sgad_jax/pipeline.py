@@ -258,7 +258,10 @@ def run(
             bar.close()
 
         metrics = {"frames": len(system), "dataset": ds.name, "layout": ds.layout}
-        run_metrics = system.finish()
+        try:
+            run_metrics = system.finish()
+        except DatasetError as err:  # e.g. the disk filled up: the trajectory may still fit
+            stopped, run_metrics = stopped or str(err), {}
         # Every input frame tracked, mapped or rendered from the scene, and scored; compilation apart.
         compiled = (run_metrics.get("compile_s") or 0.0) + (run_metrics.get("map_compile_s") or 0.0)
         if len(system) > start:

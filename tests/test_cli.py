@@ -1,5 +1,6 @@
 """The command line end to end, and its answers to bad input."""
 
+import errno
 import json
 import os
 import subprocess
@@ -148,3 +149,57 @@ def test_unwritable_output_folder_fails_before_any_work(tmp_path, capsys):
     assert main(["run", "--quiet", "--track-only", "--out", str(blocker / "out")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(blocker / "out") in err[0] and "cannot be written" in err[0]
+
+
+@pytest.mark.slow
+def test_full_disk_mid_run_is_one_line_and_keeps_the_trajectory(tmp_path, capsys, monkeypatch):
+    """The output disk fills up while a mapping run writes its frames' Gaussians (at the
+    checkpoint after frame 4): one line naming the file and the problem, exit status 2, no
+    temporary file left, and the trajectory and metrics of the frames done still written."""
+    from sgad_jax.io import store
+
+    real, calls = np.savez, []
+
+    def savez(f, **arrays):
+        calls.append(1)
+        if len(calls) >= 3:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(f, **arrays)
+
+    monkeypatch.setattr(store.np, "savez", savez)
+    out = tmp_path / "run"
+    code, _, err = _run(["run", "--quiet", *SMALL, "--out", str(out), "--checkpoint-every", "4"], capsys)
+    assert code == 2
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    frame = out / "gaussians" / "frame_000002.npz"
+    assert len(lines) == 1 and f"{frame}: cannot write (No space left on device)" in lines[0] and "Traceback" not in err
+    assert not frame.exists() and not list((out / "gaussians").glob(".*.tmp"))
+    stamps, _ = read_tum_trajectory(out / "trajectory.txt")
+    m = json.loads((out / "metrics.json").read_text())
+    assert len(stamps) == m["frames"] == 4 and "No space left on device" in m["stopped"]
+
+
+def test_checkpoint_write_failures_are_one_line(tmp_path, monkeypatch):
+    """orbax's I/O errors (tensorstore's status-coded ValueErrors, OSErrors) become one line naming
+    the checkpoint folder; other errors pass through."""
+    import orbax.checkpoint as ocp
+
+    from sgad_jax import checkpoint
+    from sgad_jax.io.base import DatasetError
+
+    arrays, meta = {"x": np.zeros(3, np.float32)}, {"a": 1}
+    for raised, reason in [
+        (ValueError("RESOURCE_EXHAUSTED: Error writing \"x/0\": Failed to write 8 bytes: No space left on device [os_error_code='28']"), "No space left on device"),
+        (PermissionError(errno.EACCES, os.strerror(errno.EACCES)), os.strerror(errno.EACCES)),
+    ]:
+        monkeypatch.setattr(ocp.CheckpointManager, "save", lambda self, *a, raised=raised, **k: (_ for _ in ()).throw(raised))
+        with pytest.raises(DatasetError) as err:
+            checkpoint.save(tmp_path / "ckpt", 4, arrays, meta)
+        assert str(err.value) == f"{tmp_path / 'ckpt'}: cannot write checkpoint 4 ({reason})"
+    monkeypatch.setattr(ocp.CheckpointManager, "save", lambda self, *a, **k: (_ for _ in ()).throw(ValueError("a bug")))
+    with pytest.raises(ValueError, match="a bug"):
+        checkpoint.save(tmp_path / "ckpt", 4, arrays, meta)
+    monkeypatch.undo()
+    checkpoint.save(tmp_path / "ckpt", 4, arrays, meta)  # and the real one writes
+    got, got_meta = checkpoint.latest(tmp_path / "ckpt")
+    assert got_meta == meta and np.array_equal(got["x"], arrays["x"])

@@ -27,7 +27,8 @@ from sgad_jax.types import Intrinsics, make_intrinsics
 
 
 class DatasetError(Exception):
-    """Bad input: the message is one line naming the file and the problem."""
+    """Bad input, or an output that cannot be written: the message is one line naming the file
+    and the problem."""
 
 
 class RunInterrupted(Exception):

@@ -11,20 +11,28 @@ import tempfile
 from collections.abc import Callable
 from typing import BinaryIO
 
+from sgad_jax.io.base import DatasetError
+
 
 def atomic_write(path, write: Callable[[BinaryIO], object]) -> pathlib.Path:
-    """Call ``write(f)`` on a binary file that becomes ``path`` only once complete."""
+    """Call ``write(f)`` on a binary file that becomes ``path`` only once complete. A file that
+    cannot be written (a full disk, no permission) raises DatasetError naming it, in one line."""
     path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as err:
+        raise DatasetError(f"{path}: cannot write ({err.strerror or err})") from None
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         pathlib.Path(tmp).unlink(missing_ok=True)
+        if isinstance(err, OSError):
+            raise DatasetError(f"{path}: cannot write ({err.strerror or err})") from None
         raise
     return path
 
