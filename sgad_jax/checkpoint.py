@@ -10,6 +10,7 @@ leaves the previous complete checkpoint to resume from.
 
 from __future__ import annotations
 
+import logging
 import os
 import pathlib
 import re
@@ -30,6 +31,10 @@ def _manager(root: pathlib.Path) -> ocp.CheckpointManager:
 def save(root: pathlib.Path, step: int, arrays: dict[str, np.ndarray], meta: dict) -> None:
     """Write checkpoint ``step`` (the number of frames done) under ``root``; DatasetError (one line)
     when it cannot be written, e.g. on a full disk (the previous checkpoint stays)."""
+    # orbax's writer threads log a failed write with its traceback; the error raised here says it in one line
+    absl_log = logging.getLogger("absl")
+    level = absl_log.level
+    absl_log.setLevel(logging.CRITICAL)
     try:
         with _manager(root) as mngr:
             mngr.save(step, args=ocp.args.Composite(arrays=ocp.args.StandardSave(arrays), meta=ocp.args.JsonSave(meta)), force=True)
@@ -42,6 +47,8 @@ def save(root: pathlib.Path, step: int, arrays: dict[str, np.ndarray], meta: dic
         code = re.search(r"os_error_code='?(\d+)", text)
         reason = os.strerror(int(code.group(1))) if code else text.split(":")[0]
         raise DatasetError(f"{root}: cannot write checkpoint {step} ({reason})") from None
+    finally:
+        absl_log.setLevel(level)
 
 
 def latest(root: pathlib.Path) -> tuple[dict[str, np.ndarray], dict] | None:
