@@ -41,7 +41,7 @@ from sgad_jax.eval.ate import ate, rpe
 from sgad_jax.io.base import BadFrame, Dataset, DatasetError, RunInterrupted
 from sgad_jax.io.datasets import open_dataset
 from sgad_jax.io.export import write_tum_trajectory
-from sgad_jax.io.files import write_bytes, write_json
+from sgad_jax.io.files import write_json
 from sgad_jax.mapper import means
 from sgad_jax.system import SLAM, TrackingDiverged, initial_pose
 
@@ -348,7 +348,7 @@ def _check_writable(out: pathlib.Path) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / f".sgad_write_test.{os.getpid()}"  # one per process: the processes of a run share the folder
-        write_bytes(probe, b"")
+        probe.write_bytes(b"")  # plain I/O: the OSError names the folder below
         probe.unlink()
     except OSError as err:
         raise DatasetError(f"{out}: the output folder cannot be written ({err.strerror or err})") from None
