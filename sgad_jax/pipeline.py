@@ -66,8 +66,7 @@ def _stop_requests(enabled: bool):
     if not enabled or threading.current_thread() is not threading.main_thread():
         yield requested
         return
-    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    previous = {s: h for s, h in previous.items() if h is not signal.SIG_IGN}
+    previous = {s: h for s in (signal.SIGINT, signal.SIGTERM) if (h := signal.getsignal(s)) is not signal.SIG_IGN}
 
     def handler(signum, frame):
         if not requested:

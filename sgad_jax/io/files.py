@@ -22,7 +22,7 @@ def atomic_write(path, write: Callable[[BinaryIO], object]) -> pathlib.Path:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as err:
-        raise DatasetError(f"{path}: cannot write ({err.strerror or err})") from None
+        raise _cannot_write(path, err) from None
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
@@ -32,9 +32,13 @@ def atomic_write(path, write: Callable[[BinaryIO], object]) -> pathlib.Path:
     except BaseException as err:
         pathlib.Path(tmp).unlink(missing_ok=True)
         if isinstance(err, OSError):
-            raise DatasetError(f"{path}: cannot write ({err.strerror or err})") from None
+            raise _cannot_write(path, err) from None
         raise
     return path
+
+
+def _cannot_write(path: pathlib.Path, err: OSError) -> DatasetError:
+    return DatasetError(f"{path}: cannot write ({err.strerror or err})")
 
 
 def write_bytes(path, data: bytes) -> pathlib.Path:
