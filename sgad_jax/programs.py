@@ -22,12 +22,12 @@ def signature(tree) -> tuple:
     return treedef, tuple(jax.typeof(x) for x in leaves)
 
 
-def compiled(key: Hashable, lower: Callable[[], jax.stages.Lowered]) -> jax.stages.Compiled:
-    """``lower().compile()``, once per process for ``key`` (which must name everything the
+def compiled(key: Hashable, lower: Callable[[], jax.stages.Lowered], options: dict | None = None) -> jax.stages.Compiled:
+    """``lower().compile(options)``, once per process for ``key`` (which must name everything the
     program bakes in: static config, closed-over values, :func:`signature` of the arguments)."""
     program = _PROGRAMS.get(key)
     if program is None:
-        program = _PROGRAMS[key] = lower().compile()
+        program = _PROGRAMS[key] = lower().compile(compiler_options=options)
     return program
 
 

@@ -106,14 +106,19 @@ def read_image(path: pathlib.Path, *, depth: bool = False) -> np.ndarray:
 
 
 def _yield_to_compute() -> None:
-    """Lower the calling thread's scheduling priority (nice +10; Linux gives each thread its own),
-    so that on a machine with few cores reading ahead takes the cores the tracking and mapping
-    steps leave idle rather than slowing them."""
+    """Run the calling thread only on cores nothing else wants (Linux ``SCHED_IDLE``, per thread;
+    nice +10 where that is refused), so that on a machine with few cores reading ahead takes the
+    cores the tracking and mapping steps leave idle rather than slowing them: a woken step thread
+    preempts an idle-class thread at once, where a niced one keeps the core a while."""
     if sys.platform.startswith("linux"):  # elsewhere the id would name a process
+        tid = threading.get_native_id()
         try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
-        except OSError:  # not permitted here: read at the same priority
-            pass
+            os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+        except OSError:
+            try:
+                os.setpriority(os.PRIO_PROCESS, tid, 10)
+            except OSError:  # not permitted here: read at the same priority
+                pass
 
 
 def _truncated(data: np.ndarray) -> bool:
