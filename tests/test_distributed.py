@@ -174,20 +174,22 @@ def test_resume_after_sigkill_matches_uninterrupted_run(tmp_path, reference_run)
 
 
 @pytest.mark.slow
-def test_ctrl_c_stops_between_frames_and_resume_matches_uninterrupted_run(tmp_path, reference_run):
+@pytest.mark.parametrize("at", [6, 8])
+def test_ctrl_c_stops_between_frames_and_resume_matches_uninterrupted_run(tmp_path, reference_run, at):
     """SIGINT (Ctrl-C) while the 6th frame is processed: exit status 130, one line, the 6 frames'
     trajectory and metrics written and checkpointed (off the --checkpoint-every schedule; at a
     mapping batch's end, as a checkpoint maps the queued frames); --resume then gives the
-    uninterrupted run's trajectory and scores."""
-    code = """
+    uninterrupted run's trajectory and scores. At the last (8th) frame the resumed run has no frame
+    left: it only finishes (the same scores)."""
+    code = f"""
 import signal, sys
 signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (pytest's workers ignore it)
 from sgad_jax.system import SLAM
 real_add = SLAM.add
 def add(self, sample):
     pose = real_add(self, sample)
-    if len(self.poses) == 6:
-        signal.raise_signal(signal.SIGINT)  # as a Ctrl-C while the 6th frame is processed
+    if len(self.poses) == {at}:
+        signal.raise_signal(signal.SIGINT)  # as a Ctrl-C while that frame is processed
     return pose
 SLAM.add = add
 from sgad_jax.cli import main
@@ -198,17 +200,17 @@ sys.exit(main(sys.argv[1:]))
     proc = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert proc.returncode == 128 + signal.SIGINT, proc.stderr[-2000:]
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and "interrupted by SIGINT after 6 of 8 frames" in lines[0] and "--resume" in lines[0]
+    assert len(lines) == 1 and f"interrupted by SIGINT after {at} of 8 frames" in lines[0] and "--resume" in lines[0]
     poses, m = _results(out)
-    assert len(poses) == 6 and m["frames"] == 6 and m["stopped"].startswith("interrupted by SIGINT")
-    assert _steps(out) == [4, 6]
+    assert len(poses) == at and m["frames"] == at and m["stopped"].startswith("interrupted by SIGINT")
+    assert _steps(out) == [4, at]
     ref_poses, ref_m = reference_run
     assert main(["run", "--quiet", *TINY_ARGS, "--out", str(out), "--checkpoint-every", "4", "--resume"]) == 0
     poses, m = _results(out)
     np.testing.assert_allclose(poses, ref_poses, atol=1e-6)
     for key in ("ate_rmse_cm", "psnr", "ssim", "depth_l1_cm", "mapped_frames", "frames", "gaussians_total"):
         assert abs(m[key] - ref_m[key]) <= 1e-4, (key, m[key], ref_m[key])
-    assert m["resumed_from_frame"] == 6 and "stopped" not in m
+    assert m["resumed_from_frame"] == at and "stopped" not in m
 
 
 @pytest.mark.slow
