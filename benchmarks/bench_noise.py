@@ -62,8 +62,8 @@ def main() -> None:
                 if same:
                     poses.append(poses[-1])
                     continue
-                state, T, _, _ = step(state, depth, intr, dt, None)
-                poses.append(np.asarray(T.as_matrix()))
+                state, _, pose, _, _ = step(state, depth, intr, dt, None)
+                poses.append(np.asarray(pose))
             score = lambda p: 100 * ate(lie.interpolate(p, depth_stamps, frame_stamps), ds.gt_poses)["rmse_m"]  # noqa: E731
             out = {"data": ds.name, "frames": len(depths), "start": args.start, "stride": args.stride,
                    "noise_share": level, "noise_sigma": cfg.data.noise_sigma, "seed": seed, "ours_ate_cm": score(np.stack(poses))}

@@ -176,8 +176,8 @@ def main() -> None:
                 poses.append(poses[-1])
                 continue
             t0 = time.perf_counter()
-            state, T, info, _ = step(state, depth, intr, dt, None)  # a host array, as read
-            pose = np.asarray(T.as_matrix())
+            state, T, pose, info, _ = step(state, depth, intr, dt, None)  # a host array, as read
+            pose = np.asarray(pose)
             times.append(time.perf_counter() - t0)
             poses.append(pose)
             iters.append(int(info.iterations))

@@ -26,14 +26,21 @@ def initial_pose(ds: Dataset) -> lie.SE3:
     return lie.from_matrix(T0) if np.isfinite(T0).all() else lie.identity()
 
 
+def _host_step(tcfg, state, depth, intr, dt, guess):
+    state, T, info, ins = slam.track_step(tcfg, state, depth, intr, dt, guess, differentiable=False)
+    return state, T, T.as_matrix(), info, ins
+
+
 def compile_step(tcfg, state: slam.SLAMState, depth, intr, dt, guess=None):
     """The tracking step compiled once for these shapes: ``step(state, depth, intr, dt, guess)``
-    (``guess``: a pose, or None for the constant-velocity prediction, as at compile time).
+    (``guess``: a pose, or None for the constant-velocity prediction, as at compile time) returns
+    ``slam.track_step``'s ``(state, T, info, insertion)`` with ``T``'s 4x4 matrix after ``T``
+    (made in the program: outside it, a few eager operations a frame).
 
     No derivatives are taken in the host loop, so the plain solver is used, and the state's buffers
     are donated (the geometry set is updated in place).
     """
-    step = jax.jit(functools.partial(slam.track_step, differentiable=False), static_argnums=0, donate_argnums=1)
+    step = jax.jit(_host_step, static_argnums=0, donate_argnums=1)
     args = (state, depth, intr, dt, guess)
     # XLA:CPU vectorises for 256-bit registers by default; the step's many small loops ran 5-13%
     # faster vectorised 512 wide, with the same poses, on AVX-512 and AVX2 alike (docs/method.md).
@@ -193,8 +200,8 @@ class SLAM:
             self._step = compile_step(self.cfg.track, self.state.track, depth, self.intr, dt, guess)
             self.compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        state, T, info, ins = self._step(self.state.track, depth, self.intr, dt, guess)
-        pose = np.asarray(T.as_matrix())
+        state, _, pose, info, ins = self._step(self.state.track, depth, self.intr, dt, guess)
+        pose = np.asarray(pose)
         if not np.isfinite(pose).all():
             raise TrackingDiverged("tracking diverged (non-finite pose)")
         self.times.append(time.perf_counter() - t0)

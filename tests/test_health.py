@@ -48,7 +48,7 @@ def _run(cfg: TrackConfig, ds: SyntheticDataset, depths=None):
     state = slam.init_state(cfg, lie.from_matrix(ds.gt_poses[0]))
     poses, infos, counts = [], [], []
     for i, depth in enumerate(depths):
-        state, T, info, _ = STEP(cfg, state, jnp.asarray(depth), ds.intrinsics, jnp.float32(0.0 if i == 0 else 1 / 30))
+        state, T, _, info, _ = STEP(cfg, state, jnp.asarray(depth), ds.intrinsics, jnp.float32(0.0 if i == 0 else 1 / 30))
         poses.append(np.asarray(T.as_matrix()))
         infos.append(jax.tree.map(np.asarray, info))
         counts.append(int(state.geom.count))
@@ -188,9 +188,9 @@ def test_non_finite_guess_falls_back_to_the_previous_pose():
     ds = _room(frames=3)
     state = slam.init_state(CFG, lie.from_matrix(ds.gt_poses[0]))
     for i in range(2):
-        state, _, _, _ = STEP(CFG, state, jnp.asarray(ds[i].depth), ds.intrinsics, jnp.float32(i / 30))
+        state, _, _, _, _ = STEP(CFG, state, jnp.asarray(ds[i].depth), ds.intrinsics, jnp.float32(i / 30))
     nan_guess = lie.SE3(jnp.full(7, jnp.nan))
-    state, T, info, _ = STEP(CFG, state, jnp.asarray(ds[2].depth), ds.intrinsics, jnp.float32(1 / 30), nan_guess)
+    state, T, _, info, _ = STEP(CFG, state, jnp.asarray(ds[2].depth), ds.intrinsics, jnp.float32(1 / 30), nan_guess)
     assert np.isfinite(np.asarray(T.as_matrix())).all() and np.isfinite(np.asarray(state.velocity)).all()
     t, r = _errors(np.asarray(T.as_matrix()), ds.gt_poses[2])
     assert int(info.failure) == 0 and t < 1e-3 and r < 0.05

@@ -264,9 +264,9 @@ def test_rendering_init_recovers_motion_that_gicp_misses():
     tcfg = resolve_config(None, None).track  # the demo preset's: the host loop's step at 80 x 60, from the shared cache
     state = slam.init_state(tcfg)
     track = compile_step(tcfg, state, f0.depth, intr, jnp.float32(0.0))
-    state, _, _, _ = track(state, f0.depth, intr, jnp.float32(0.0), None)
+    state, _, _, _, _ = track(state, f0.depth, intr, jnp.float32(0.0), None)
     # GICP alone from the previous pose: the plane gives no in-plane constraint.
-    _, T_gicp, _, _ = track(state, f1.depth, intr, jnp.float32(0.0), None)
+    _, T_gicp, _, _, _ = track(state, f1.depth, intr, jnp.float32(0.0), None)
     err_gicp = np.linalg.norm(np.asarray(T_gicp.translation() - true1.translation()))
     assert err_gicp > 0.03
     # Rendering-based initialisation from frame 0's Gaussians finds the motion from the texture.

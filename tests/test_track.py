@@ -28,7 +28,7 @@ def scene():
     state = slam.init_state(CFG, lie.from_matrix(ds.gt_poses[0]))  # not T0: the step takes over the state's buffers
     depth0 = jnp.asarray(ds[0].depth)
     # the host loop's compiled step (kept per process: test_repeated_depth_image's SLAM reuses it)
-    state, T, _, _ = compile_step(CFG, state, depth0, ds.intrinsics, jnp.float32(0.0))(state, depth0, ds.intrinsics, jnp.float32(0.0), None)
+    state, T, _, _, _ = compile_step(CFG, state, depth0, ds.intrinsics, jnp.float32(0.0))(state, depth0, ds.intrinsics, jnp.float32(0.0), None)
     cloud0 = gicp.frame_points(CFG, depth0, ds.intrinsics)
     return ds, state.geom, cloud0, T0
 
