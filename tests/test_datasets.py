@@ -6,6 +6,8 @@ import json
 import math
 import os
 import pathlib
+import threading
+import time
 
 import cv2
 import numpy as np
@@ -589,6 +591,31 @@ def test_frames_read_ahead_in_order_and_fail_at_the_bad_frame(tmp_path):
         for s in d.frames(ahead=2):
             seen.append(s.index)
     assert seen == [0, 1, 2] and str(bad) in str(e.value)
+
+
+def test_frames_read_by_the_caller_when_the_reading_thread_gets_no_core(tmp_path, monkeypatch):
+    """The reading thread runs only on idle cores, so on a machine busy with other work it may not
+    run at all: the frames still come, in order, read by the caller. Here the thread is held for
+    30 s inside its first read."""
+    root = make_generic(tmp_path, n=6)
+    d = GenericDataset(root, cfg(root))
+    release, real = threading.Event(), GenericDataset._read_ahead
+
+    def read(self, i, fill):
+        if threading.current_thread().name.startswith("sgad-read"):
+            release.wait(30)
+        return real(self, i, fill)
+
+    monkeypatch.setattr(GenericDataset, "_read_ahead", read)
+    t0 = time.perf_counter()
+    try:
+        got = list(d.frames(ahead=2, fill=lambda i: i == 1))
+    finally:
+        release.set()
+    assert time.perf_counter() - t0 < 10
+    assert [s.index for s in got] == list(range(6)) and "depth_filled" in vars(got[1])
+    for s in got:
+        assert np.array_equal(s.depth, d[s.index].depth) and np.array_equal(s.rgb, d[s.index].rgb)
 
 
 def test_malformed_files(tmp_path):

@@ -105,6 +105,11 @@ def read_image(path: pathlib.Path, *, depth: bool = False) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+#: How long :meth:`Dataset.frames` waits for a frame its reading thread is decoding before it reads
+#: the frame itself (a frame's decode takes a few milliseconds on an idle core).
+READER_PATIENCE_S = 0.05
+
+
 def _yield_to_compute() -> None:
     """Run the calling thread only on cores nothing else wants (Linux ``SCHED_IDLE``, per thread;
     nice +10 where that is refused), so that on a machine with few cores reading ahead takes the
@@ -331,30 +336,40 @@ class Dataset:
         frames ``i`` with ``fill(i)`` true the thread also inpaints the depth
         (:attr:`RGBDSample.depth_filled`, which mapping needs), off the caller's path.
 
+        The thread runs only on idle cores (:func:`_yield_to_compute`). A frame it has not started
+        when its turn comes, or not finished within ``READER_PATIENCE_S``, is read by the caller
+        instead: on a machine busy with other work the thread may get no core at all.
+
         A frame that cannot be read raises its :class:`DatasetError` when its turn comes, after
         every frame before it has been yielded; with ``skip_bad`` it is yielded as a
         :class:`BadFrame` instead, and reading goes on.
         """
-        with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="sgad-read", initializer=_yield_to_compute) as pool:
-            pending, nxt = collections.deque(), start
-            try:
-                while True:
-                    while nxt < len(self) and len(pending) <= ahead:
-                        pending.append(pool.submit(self._read_ahead, nxt, fill))
-                        nxt += 1
-                    if not pending:
-                        return
-                    i = nxt - len(pending)
-                    try:
-                        sample = pending.popleft().result()
-                    except DatasetError as err:
-                        if not skip_bad:
-                            raise
-                        sample = BadFrame(i, int(self.selection[i]), str(err))
-                    yield sample
-            finally:
-                for future in pending:
-                    future.cancel()
+        pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="sgad-read", initializer=_yield_to_compute)
+        pending, nxt = collections.deque(), start
+        try:
+            while True:
+                while nxt < len(self) and len(pending) <= ahead:
+                    pending.append(pool.submit(self._read_ahead, nxt, fill))
+                    nxt += 1
+                if not pending:
+                    return
+                i = nxt - len(pending)
+                future = pending.popleft()
+                try:
+                    if future.cancel():  # not started: the thread is behind
+                        sample = self._read_ahead(i, fill)
+                    else:
+                        try:
+                            sample = future.result(timeout=READER_PATIENCE_S)
+                        except concurrent.futures.TimeoutError:  # started, and starved of cores
+                            sample = self._read_ahead(i, fill)
+                except DatasetError as err:
+                    if not skip_bad:
+                        raise
+                    sample = BadFrame(i, int(self.selection[i]), str(err))
+                yield sample
+        finally:
+            pool.shutdown(wait=False, cancel_futures=True)  # a starved read left running ends on its own
 
     def _read_ahead(self, i: int, fill) -> RGBDSample:
         sample = self[i]
