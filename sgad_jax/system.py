@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import dataclasses
-import functools
 import os
 import pathlib
 import time
@@ -42,8 +41,8 @@ def compile_step(tcfg, state: slam.SLAMState, depth, intr, dt, guess=None):
     """
     step = jax.jit(_host_step, static_argnums=0, donate_argnums=1)
     args = (state, depth, intr, dt, guess)
-    # XLA:CPU vectorises for 256-bit registers by default; the step's many small loops ran 5-13%
-    # faster vectorised 512 wide, with the same poses, on AVX-512 and AVX2 alike (docs/method.md).
+    # XLA:CPU vectorises for 256-bit registers by default; the step's many small loops run faster
+    # vectorised 512 wide, with the same poses, on AVX-512 and AVX2 machines alike (docs/method.md).
     options = {"xla_cpu_prefer_vector_width": 512} if jax.default_backend() == "cpu" else None
     return programs.compiled(("track", tcfg, programs.signature(args)), lambda: step.lower(tcfg, *args), options)
 
