@@ -1,10 +1,12 @@
-"""The tracking benchmark runs end to end and prints its JSON (it had silently broken once)."""
+"""The tracking benchmark runs end to end and prints its JSON (it had silently broken once); the
+structured-light simulation follows its error model."""
 
 import json
 import pathlib
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from conftest import shared
@@ -24,3 +26,28 @@ def test_bench_track_prints_both_trackers():
     assert out["frames"] == 6 and len(out["rounds_ms"]) == 2
     # both trackers follow the camera over 6 frames of fr1/xyz to within a centimetre
     assert out["ours_ate_cm"] < 1.0 and out["small_gicp_ate_cm"] < 1.0
+
+
+def test_structured_light_simulation_against_its_error_model():
+    """The simulated sensor's depth error on a flat wall matches its own model worked out by hand:
+    disparity noise N(0, 0.062 px) plus the 1/8-px rounding (variance step^2 / 12), carried to depth
+    by dz = z^2 / (f b) dd; a nearer box hides the 4 px of wall right of it from the projector (on
+    the camera's left), and about 0.5% of the rest drops out."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import sim_structured_light as sim
+
+    rng = np.random.default_rng(0)
+    z = np.full((400, 600), 2.0)
+    out = sim.simulate(z, rng)
+    seen = out > 0
+    sigma_d = np.hypot(sim.DISPARITY_SIGMA_PX, sim.DISPARITY_STEP_PX / np.sqrt(12))
+    expected = 2.0**2 / (sim.F_PX * sim.BASELINE_M) * sigma_d
+    rms = np.sqrt(np.mean((out[seen] - 2.0) ** 2))
+    assert abs(rms / expected - 1) < 0.1, (rms, expected)
+    assert 0.003 < 1 - seen.mean() < 0.007
+    box = z.copy()
+    box[100:300, 200:400] = 1.0  # a nearer box: its right edge has the wall behind it
+    seen = sim.simulate(box, np.random.default_rng(1)) > 0
+    right_of_box = ~seen[100:300, 400:410]
+    assert right_of_box[:, :4].mean() > 0.95 and right_of_box[:, 4:].mean() < 0.02
+    assert (~seen[100:300, 190:200]).mean() < 0.02  # left of it: nothing hidden
