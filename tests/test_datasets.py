@@ -594,7 +594,7 @@ def test_frames_read_ahead_in_order_and_fail_at_the_bad_frame(tmp_path):
 
 
 def test_frames_read_by_the_caller_when_the_reading_thread_gets_no_core(tmp_path, monkeypatch):
-    """The reading thread runs only on idle cores, so on a machine busy with other work it may not
+    """The reading thread runs at a low priority, so on a machine busy with other work it may hardly
     run at all: the frames still come, in order, read by the caller. Here the thread is held for
     30 s inside its first read."""
     root = make_generic(tmp_path, n=6)

@@ -106,24 +106,21 @@ def read_image(path: pathlib.Path, *, depth: bool = False) -> np.ndarray:
 
 
 #: How long :meth:`Dataset.frames` waits for a frame its reading thread is decoding before it reads
-#: the frame itself (a frame's decode takes a few milliseconds on an idle core).
+#: the frame itself (a frame's decode takes a few milliseconds on a free core).
 READER_PATIENCE_S = 0.05
 
 
 def _yield_to_compute() -> None:
-    """Run the calling thread only on cores nothing else wants (Linux ``SCHED_IDLE``, per thread;
-    nice +10 where that is refused), so that on a machine with few cores reading ahead takes the
-    cores the tracking and mapping steps leave idle rather than slowing them: a woken step thread
-    preempts an idle-class thread at once, where a niced one keeps the core a while."""
+    """Lower the calling thread's scheduling priority (nice +10; Linux gives each thread its own),
+    so that on a machine with few cores reading ahead takes the cores the tracking and mapping
+    steps leave idle rather than slowing them. Not Linux's idle class: a thread of it that is
+    preempted while holding the GIL stalls the main thread for as long as other work holds the
+    cores (docs/method.md)."""
     if sys.platform.startswith("linux"):  # elsewhere the id would name a process
-        tid = threading.get_native_id()
         try:
-            os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
-        except OSError:
-            try:
-                os.setpriority(os.PRIO_PROCESS, tid, 10)
-            except OSError:  # not permitted here: read at the same priority
-                pass
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+        except OSError:  # not permitted here: read at the same priority
+            pass
 
 
 def _truncated(data: np.ndarray) -> bool:
@@ -336,9 +333,9 @@ class Dataset:
         frames ``i`` with ``fill(i)`` true the thread also inpaints the depth
         (:attr:`RGBDSample.depth_filled`, which mapping needs), off the caller's path.
 
-        The thread runs only on idle cores (:func:`_yield_to_compute`). A frame it has not started
+        The thread runs at a low priority (:func:`_yield_to_compute`). A frame it has not started
         when its turn comes, or not finished within ``READER_PATIENCE_S``, is read by the caller
-        instead: on a machine busy with other work the thread may get no core at all.
+        instead: on a machine busy with other work the thread gets little of the cores.
 
         A frame that cannot be read raises its :class:`DatasetError` when its turn comes, after
         every frame before it has been yielded; with ``skip_bad`` it is yielded as a
