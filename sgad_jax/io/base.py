@@ -113,9 +113,8 @@ READER_PATIENCE_S = 0.05
 def _yield_to_compute() -> None:
     """Lower the calling thread's scheduling priority (nice +10; Linux gives each thread its own),
     so that on a machine with few cores reading ahead takes the cores the tracking and mapping
-    steps leave idle rather than slowing them. Not Linux's idle class: a thread of it that is
-    preempted while holding the GIL stalls the main thread for as long as other work holds the
-    cores (docs/method.md)."""
+    steps leave idle rather than slowing them. Not Linux's idle class: with it, runs with mapping
+    stalled on a machine busy with other work (docs/method.md)."""
     if sys.platform.startswith("linux"):  # elsewhere the id would name a process
         try:
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
