@@ -159,6 +159,7 @@ def run(
     if on_bad_frame not in ("stop", "skip"):
         raise ConfigError(f"--on-bad-frame must be stop or skip, got {on_bad_frame!r}")
     ds = open_dataset(cfg.data)
+    ds.colour = not track_only or viewer is not None  # tracking alone never looks at colour (the live view does)
     out = None if out_dir is None else pathlib.Path(out_dir)
     if out is not None:
         _check_writable(out)

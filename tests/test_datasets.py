@@ -16,7 +16,7 @@ import pytest
 from sgad_jax.config import DataConfig
 from sgad_jax.io import datasets as ds
 from sgad_jax.config import ConfigError, SLAMConfig, apply_overrides
-from sgad_jax.io.base import DatasetError, add_depth_noise, inpaint_depth
+from sgad_jax.io.base import DatasetError, add_depth_noise, inpaint_depth, read_image
 from sgad_jax.io.datasets import (
     GenericDataset,
     ReplicaDataset,
@@ -266,6 +266,39 @@ def test_replica_cam_params_in_folder_and_defaults(tmp_path):
 
 
 # --- 7-Scenes ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ext, params", [(".png", []), (".jpg", []), (".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]), (".bmp", [])])
+@pytest.mark.parametrize("h, w", [(37, 53), (480, 640), (1, 300)])
+def test_colour_checked_without_decoding_has_the_decoded_size(tmp_path, ext, params, h, w):
+    """``decode=False`` reads the size from the header; cv2's decode of the same file is the oracle.
+    A JPEG's start-of-frame comes after an EXIF-like segment of its own length; BMP is decoded."""
+    path = tmp_path / f"c{ext}"
+    assert cv2.imwrite(str(path), np.random.default_rng(0).integers(0, 255, (h, w, 3), dtype=np.uint8), params)
+    if ext == ".jpg":  # an APP1 segment of 300 bytes between SOI and the frame header
+        data = path.read_bytes()
+        path.write_bytes(data[:2] + b"\xff\xe1" + (302).to_bytes(2, "big") + b"\xff" * 300 + data[2:])
+    decoded = read_image(path)
+    checked = read_image(path, decode=False)
+    assert checked.shape == decoded.shape == (h, w, 3) and checked.dtype == np.uint8
+    assert (checked == decoded).all() if ext == ".bmp" else not checked.any()  # BMP: decoded after all
+
+
+def test_colour_not_decoded_still_finds_cut_missing_and_mismatched_images(tmp_path):
+    root = make_7scenes(tmp_path / "redkitchen")
+    d = SevenScenesDataset(root, cfg(root))
+    d.colour = False
+    for i, s in enumerate(d):
+        assert s.rgb.shape == (H, W, 3) and not s.rgb.any()
+        assert s.depth[5, 5] == pytest.approx(1.5 + 0.1 * i)
+    cut, gone, small = (root / f"frame-{i:06d}.color.png" for i in range(3))
+    cut.write_bytes(cut.read_bytes()[:-20])
+    gone.unlink()
+    write_rgb(small, np.zeros((H - 2, W, 3)))
+    for i, (path, what) in enumerate([(cut, "truncated"), (gone, "file not found"), (small, "colour is")]):
+        with pytest.raises(DatasetError, match=what) as e:
+            d[i]
+        assert str(path) in str(e.value)
 
 
 def test_7scenes(tmp_path):

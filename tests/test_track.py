@@ -210,6 +210,20 @@ def test_track_step_does_not_recompile(scene):
     assert int(ins.overflow) == 0
 
 
+def test_repeats_is_bit_for_bit_equality():
+    """`repeats` (a sparse grid first, then every pixel) against the definition: equal arrays."""
+    from sgad_jax.system import repeats
+
+    depth = np.random.default_rng(0).random((48, 64)).astype(np.float32)
+    assert not repeats(depth, None)
+    assert repeats(depth, depth.copy())
+    for at in ((0, 0), (1, 1), (47, 63), (16, 17)):  # on the sparse grid, and between its rows and columns
+        other = depth.copy()
+        other[at] = np.nextafter(other[at], np.float32(2))
+        assert not repeats(other, depth) and not np.array_equal(other, depth)
+    assert not repeats(depth[:, :32], depth)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("hold", [True, False])
 def test_repeated_depth_image(scene, hold):

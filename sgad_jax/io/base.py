@@ -83,8 +83,14 @@ class RGBDSample:
         return inpaint_depth(self.depth) if self.inpaint else self.depth
 
 
-def read_image(path: pathlib.Path, *, depth: bool = False) -> np.ndarray:
-    """Colour as (h, w, 3) uint8 RGB, or depth as a raw 2-D array; DatasetError when it cannot be read."""
+def read_image(path: pathlib.Path, *, depth: bool = False, decode: bool = True) -> np.ndarray:
+    """Colour as (h, w, 3) uint8 RGB, or depth as a raw 2-D array; DatasetError when it cannot be read.
+
+    With ``decode`` false, a colour PNG or JPEG is checked, not decoded (a run that only tracks
+    never looks at colour, and decoding it took a core's milliseconds a frame from the tracking
+    step): it must be readable, whole (its end marker present) and give its size in its header;
+    the result is black of that size. Other formats, or a header that does not parse, are decoded.
+    """
     path = pathlib.Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: file not found")
@@ -94,6 +100,9 @@ def read_image(path: pathlib.Path, *, depth: bool = False) -> np.ndarray:
         raise DatasetError(f"{path}: cannot read ({err.strerror or err})") from None
     if _truncated(data):
         raise DatasetError(f"{path}: truncated image file (it ends before the image does)")
+    size = None if decode or depth else _header_size(memoryview(data))
+    if size is not None:
+        return np.zeros((size[1], size[0], 3), np.uint8)
     flags = cv2.IMREAD_UNCHANGED if depth else cv2.IMREAD_COLOR
     image = cv2.imdecode(data, flags) if data.size else None
     if image is None:
@@ -131,6 +140,35 @@ def _truncated(data: np.ndarray) -> bool:
     if head.startswith(b"\xff\xd8"):
         return b"\xff\xd9" not in tail
     return False
+
+
+#: JPEG start-of-frame markers (they carry the image size): C0-CF but DHT, JPG and DAC.
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def _header_size(data: memoryview) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR or a JPEG's start-of-frame segment; None for another
+    format or a header that does not parse."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 24:
+        size = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+        return size if min(size) > 0 else None
+    if data[:2] != b"\xff\xd8":
+        return None
+    pos = 2  # the segments after SOI: 0xFF, marker, then (but for RSTn / TEM) a 2-byte length
+    while pos + 9 <= len(data) and data[pos] == 0xFF:
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+        elif marker in _JPEG_SOF:
+            size = int.from_bytes(data[pos + 7 : pos + 9], "big"), int.from_bytes(data[pos + 5 : pos + 7], "big")
+            return size if min(size) > 0 else None
+        elif marker == 0x01 or 0xD0 <= marker <= 0xD7:
+            pos += 2
+        elif marker in (0xD9, 0xDA):  # the end, or the scan, before any frame header
+            return None
+        else:
+            pos += 2 + int.from_bytes(data[pos + 2 : pos + 4], "big")
+    return None
 
 
 def inpaint_depth(depth: np.ndarray, radius: int = 5) -> np.ndarray:
@@ -192,6 +230,8 @@ class Dataset:
     """Base class of every loader; see the module docstring."""
 
     layout: str = "?"
+    #: Decode colour images (False: only check them, each frame's colour black; see :func:`read_image`).
+    colour: bool = True
     intrinsics_full: Intrinsics
     timestamps_raw: np.ndarray  # (N,) float64
     depth_timestamps_raw: np.ndarray | None = None  # (N,) float64, when depth has stamps of its own

@@ -149,7 +149,7 @@ class _FileDataset(Dataset):
 
     def _load_raw(self, j):
         depth = _depth_metres(read_image(self.depth_paths[j], depth=True), self.depth_scale)
-        return read_image(self.rgb_paths[j]), depth
+        return read_image(self.rgb_paths[j], decode=self.colour), depth
 
     def describe(self, j, *, depth=False):
         return str(self.depth_paths[j]) if depth else f"{self.rgb_paths[j]} (depth {self.depth_paths[j]})"
@@ -321,7 +321,7 @@ class SevenScenesDataset(_FileDataset):
         raw = read_image(self.depth_paths[j], depth=True)
         depth = _depth_metres(raw, self.depth_scale)
         depth[raw == 65535] = 0.0
-        return read_image(self.rgb_paths[j]), depth
+        return read_image(self.rgb_paths[j], decode=self.colour), depth
 
 
 def _seven_scenes_frames(folder: pathlib.Path) -> list[pathlib.Path]:
@@ -381,7 +381,7 @@ class ScanNetDataset(_FileDataset):
 
     def _load_raw(self, j):
         depth = _depth_metres(read_image(self.depth_paths[j], depth=True), self.depth_scale)
-        rgb = read_image(self.rgb_paths[j])
+        rgb = read_image(self.rgb_paths[j], decode=self.colour)
         if rgb.shape[:2] != depth.shape:
             rgb = cv2.resize(rgb, (depth.shape[1], depth.shape[0]), interpolation=cv2.INTER_LINEAR)
         e = self.crop
@@ -453,7 +453,7 @@ class ScanNetPPDataset(_FileDataset):
         self._finish_init()
 
     def _load_raw(self, j):
-        rgb = read_image(self.rgb_paths[j])
+        rgb = read_image(self.rgb_paths[j], decode=self.colour)
         raw = read_image(self.depth_paths[j], depth=True)
         if rgb.shape[:2] != raw.shape:
             raise DatasetError(
@@ -528,7 +528,7 @@ class GenericDataset(_FileDataset):
     def _load_raw(self, j):
         raw = read_image(self.depth_paths[j], depth=True)
         depth = raw.astype(np.float32) if raw.dtype.kind == "f" else _depth_metres(raw, self.depth_scale)
-        return read_image(self.rgb_paths[j]), depth
+        return read_image(self.rgb_paths[j], decode=self.colour), depth
 
 
 def _images(folder: pathlib.Path) -> list[pathlib.Path]:
