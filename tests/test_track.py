@@ -210,6 +210,57 @@ def test_track_step_does_not_recompile(scene):
     assert int(ins.overflow) == 0
 
 
+_WIDE_VS_DEFAULT = """
+import json, jax, jax.numpy as jnp, numpy as np
+from sgad_jax import gicp, lie, slam, system
+from sgad_jax.cli import resolve_config
+from sgad_jax.config import DataConfig, SyntheticConfig
+from sgad_jax.io.synthetic import SyntheticDataset
+cfg = resolve_config(None, None).track
+ds = SyntheticDataset(DataConfig(layout="synthetic", synthetic=SyntheticConfig(frames=5, width=320, height=240)))
+wide = {"xla_cpu_prefer_vector_width": 512}
+depth = jnp.asarray(ds[1].depth)
+clouds = jax.jit(lambda d: gicp.frame_clouds(cfg, d, ds.intrinsics)).lower(depth)
+a, b = (jax.tree.leaves(clouds.compile(o)(depth)) for o in (None, wide))
+init = lambda: slam.init_state(cfg, lie.from_matrix(ds.gt_poses[0]))
+lowered = jax.jit(system._host_step, static_argnums=0).lower(cfg, init(), depth, ds.intrinsics, jnp.float32(0), None)
+runs = []
+for options in (None, wide):
+    step, state, poses = lowered.compile(options), init(), []
+    for i in range(len(ds)):
+        state, _, pose, _, _ = step(state, jnp.asarray(ds[i].depth), ds.intrinsics, jnp.float32(i / 30), None)
+        poses.append(np.asarray(pose))
+    runs.append((np.stack(poses), int(state.geom.count)))
+print(json.dumps({
+    "clouds": max(float(np.max(np.abs(np.asarray(x, np.float64) - np.asarray(y, np.float64)))) for x, y in zip(a, b)),
+    "pose": float(np.abs(runs[1][0] - runs[0][0]).max()),
+    "count": [runs[0][1], runs[1][1]],
+}))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="the 512-bit vectors are an XLA:CPU option")
+def test_step_compiled_for_wide_vectors_tracks_as_the_default_compile():
+    """`compile_step` vectorises the step 512 wide on CPU. XLA:CPU has miscompiled functions at that
+    width (jaxlib 0.10.2's atan returns wrong values, jax-ml/jax#39352): the step compiled so must
+    give the default compile's frame clouds (points, covariances, normals) and poses. In a process of its
+    own, with XLA's default flags: the suite's fast-compile flags (conftest.py) take another path."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "XLA_FLAGS": ""}
+    out = subprocess.run([sys.executable, "-c", _WIDE_VS_DEFAULT], env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    diff = json.loads(out.stdout.strip().splitlines()[-1])
+    # Float32 rounding differs (rsqrt, sums) between the two: a pose a few 1e-6 off moves points
+    # across voxel borders, so T's size agrees within 0.2%.
+    n0, n1 = diff["count"]
+    assert diff["clouds"] < 1e-4 and diff["pose"] < 1e-5 and abs(n1 - n0) <= 0.002 * n0, diff
+
+
 def test_repeats_is_bit_for_bit_equality():
     """`repeats` (a sparse grid first, then every pixel) against the definition: equal arrays."""
     from sgad_jax.system import repeats
