@@ -59,7 +59,7 @@ class RGBDSample:
         timestamp: seconds (TUM) or the source index.
         depth_timestamp: when the depth image was taken, in the same unit (TUM: its own stamp,
             which differs from the colour stamp; elsewhere equal to ``timestamp``).
-        rgb: (h, w, 3) uint8 colour.
+        rgb: (h, w, 3) uint8 colour (black when the dataset does not decode colour, ``Dataset.colour``).
         depth: (h, w) float32 measured depth in metres, 0 where missing.
         pose_gt: (4, 4) float64 camera-to-world ground truth (OpenCV axes), NaN if unknown.
         inpaint: whether :attr:`depth_filled` inpaints the holes of ``depth``.
