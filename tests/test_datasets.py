@@ -299,6 +299,12 @@ def test_colour_not_decoded_still_finds_cut_missing_and_mismatched_images(tmp_pa
         with pytest.raises(DatasetError, match=what) as e:
             d[i]
         assert str(path) in str(e.value)
+    huge = bytearray(small.read_bytes())  # a header claiming 100000 x 100000 pixels: an error, not 28 GB of black
+    huge[16:24] = (100000).to_bytes(4, "big") * 2
+    small.write_bytes(bytes(huge))
+    with pytest.raises(DatasetError, match="cannot decode") as e:
+        d[2]
+    assert str(small) in str(e.value) and "\n" not in str(e.value)
 
 
 def test_7scenes(tmp_path):

@@ -144,14 +144,21 @@ def _truncated(data: np.ndarray) -> bool:
 
 #: JPEG start-of-frame markers (they carry the image size): C0-CF but DHT, JPG and DAC.
 _JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+#: Larger sizes in a header are left to the decoder (which refuses what it cannot hold), so that a
+#: corrupt header does not become a black image of many gigabytes.
+_HEADER_MAX_PIXELS = 1 << 26
 
 
 def _header_size(data: memoryview) -> tuple[int, int] | None:
     """(width, height) from a PNG's IHDR or a JPEG's start-of-frame segment; None for another
-    format or a header that does not parse."""
+    format, a header that does not parse, or a size beyond ``_HEADER_MAX_PIXELS``."""
+    size = _header_fields(data)
+    return size if size is not None and 0 < size[0] * size[1] <= _HEADER_MAX_PIXELS else None
+
+
+def _header_fields(data: memoryview) -> tuple[int, int] | None:
     if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 24:
-        size = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
-        return size if min(size) > 0 else None
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
     if data[:2] != b"\xff\xd8":
         return None
     pos = 2  # the segments after SOI: 0xFF, marker, then (but for RSTn / TEM) a 2-byte length
@@ -160,8 +167,7 @@ def _header_size(data: memoryview) -> tuple[int, int] | None:
         if marker == 0xFF:  # fill byte
             pos += 1
         elif marker in _JPEG_SOF:
-            size = int.from_bytes(data[pos + 7 : pos + 9], "big"), int.from_bytes(data[pos + 5 : pos + 7], "big")
-            return size if min(size) > 0 else None
+            return int.from_bytes(data[pos + 7 : pos + 9], "big"), int.from_bytes(data[pos + 5 : pos + 7], "big")
         elif marker == 0x01 or 0xD0 <= marker <= 0xD7:
             pos += 2
         elif marker in (0xD9, 0xDA):  # the end, or the scan, before any frame header
