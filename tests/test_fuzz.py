@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from sgad_jax.cli import main
 from sgad_jax.config import DataConfig
-from sgad_jax.io.base import BadFrame, DatasetError, RGBDSample
+from sgad_jax.io.base import BadFrame, DatasetError, RGBDSample, read_image
 from sgad_jax.io.datasets import open_dataset
 
 CORRUPTIONS = ("none", "cut_rgb", "cut_depth", "garbage_depth", "zero_depth", "missing_65535", "nan_depth", "size")
@@ -94,6 +94,30 @@ def test_loader_fuzz(tmp_path_factory, kinds, h, w, f, c, cut, seed):
         assert np.isfinite(item.depth).all() and (item.depth >= 0).all() and item.depth.any()
         if kind != "cut_depth":
             np.testing.assert_allclose(item.depth, depth / 1000.0, rtol=1e-6)
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(kind=st.sampled_from(["png", "jpg", "other"]), body=st.binary(max_size=64), ended=st.booleans(), segments=st.lists(st.integers(0, 255), max_size=6))
+@example(kind="png", body=b"\x00\x00\x00\x0dIHDR" + (100000).to_bytes(4, "big") * 2 + b"\x08\x02\x00\x00\x00", ended=True, segments=[])
+@example(kind="png", body=b"\x00\x00\x00\x0dIHDR" + (5).to_bytes(4, "big") + (4).to_bytes(4, "big") + b"\x08\x02\x00\x00\x00", ended=True, segments=[])
+def test_colour_checked_without_decoding_fuzz(tmp_path_factory, kind, body, ended, segments):
+    """Random bytes behind a PNG or JPEG signature (JPEG: random markers with random lengths), with
+    or without an end marker: checking colour without decoding it gives an image or one line naming
+    the file, never another exception."""
+    head = {"png": b"\x89PNG\r\n\x1a\n", "jpg": b"\xff\xd8", "other": b""}[kind]
+    if kind == "jpg":
+        head += b"".join(b"\xff" + bytes([m]) + (len(body) % 7).to_bytes(2, "big") for m in segments)
+    tail = {"png": b"\x00\x00\x00\x00IEND\xaeB`\x82", "jpg": b"\xff\xd9", "other": b""}[kind] if ended else b""
+    path = tmp_path_factory.mktemp("colour") / f"c.{kind}"
+    path.write_bytes(head + body + tail)
+    try:
+        image = read_image(path, decode=False)
+    except DatasetError as err:
+        assert _one_line_naming(str(err), [path])
+        return
+    assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3
+    if kind == "png" and body[4:8] == b"IHDR":  # the size the header gives
+        assert image.shape[:2] == (int.from_bytes(body[12:16], "big"), int.from_bytes(body[8:12], "big"))
 
 
 @pytest.mark.parametrize("make", ["empty", "no_depth", "bad_intrinsics", "mismatch"])
