@@ -11,7 +11,7 @@ import pytest
 
 from conftest import shared
 from sgad_jax import gicp, lie, pipeline, slam
-from sgad_jax.system import SLAM, compile_step, initial_pose
+from sgad_jax.system import SLAM, compile_step, initial_pose, repeats
 from sgad_jax.cli import resolve_config
 from sgad_jax.config import ConfigError, DataConfig, SyntheticConfig, TrackConfig
 from sgad_jax.io.synthetic import SyntheticDataset
@@ -263,8 +263,6 @@ def test_step_compiled_for_wide_vectors_tracks_as_the_default_compile():
 
 def test_repeats_is_bit_for_bit_equality():
     """`repeats` (a sparse grid first, then every pixel) against the definition: equal arrays."""
-    from sgad_jax.system import repeats
-
     depth = np.random.default_rng(0).random((48, 64)).astype(np.float32)
     assert not repeats(depth, None)
     assert repeats(depth, depth.copy())
