@@ -284,6 +284,24 @@ def test_colour_checked_without_decoding_has_the_decoded_size(tmp_path, ext, par
     assert (checked == decoded).all() if ext == ".bmp" else not checked.any()  # BMP: decoded after all
 
 
+@pytest.mark.parametrize("make, loader", [
+    (lambda r: make_tum(r / "rgbd_dataset_freiburg1_desk"), TUMDataset),
+    (make_replica, ReplicaDataset),
+    (lambda r: make_7scenes(r / "redkitchen"), SevenScenesDataset),
+    (lambda r: make_scannet(r / "scene0000_00"), ScanNetDataset),  # colour larger than depth: resized
+    (make_scannetpp, ScanNetPPDataset),  # both resized
+    (make_generic, GenericDataset),
+])
+def test_every_loader_without_colour_decoding_gives_black_of_the_decoded_size(tmp_path, make, loader):
+    root = make(tmp_path)
+    decoded, checked = loader(root, cfg(root)), loader(root, cfg(root))
+    checked.colour = False
+    for i in range(len(decoded)):
+        a, b = decoded[i], checked[i]
+        assert b.rgb.shape == a.rgb.shape and b.rgb.dtype == a.rgb.dtype and not b.rgb.any()
+        np.testing.assert_array_equal(b.depth, a.depth)
+
+
 def test_colour_not_decoded_still_finds_cut_missing_and_mismatched_images(tmp_path):
     root = make_7scenes(tmp_path / "redkitchen")
     d = SevenScenesDataset(root, cfg(root))
