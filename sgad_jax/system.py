@@ -25,6 +25,12 @@ def initial_pose(ds: Dataset) -> lie.SE3:
     return lie.from_matrix(T0) if np.isfinite(T0).all() else lie.identity()
 
 
+#: XLA:CPU vectorises for 256-bit registers by default; the tracking step's many small loops run
+#: faster 512 wide, on AVX-512 and AVX2 machines alike, with the same poses up to float32 rounding
+#: (docs/method.md). jaxlib 0.10.2 miscompiles atan at that width: a test compares the two compiles.
+TRACK_CPU_OPTIONS = {"xla_cpu_prefer_vector_width": 512}
+
+
 def _host_step(tcfg, state, depth, intr, dt, guess):
     state, T, info, ins = slam.track_step(tcfg, state, depth, intr, dt, guess, differentiable=False)
     return state, T, T.as_matrix(), info, ins
@@ -41,10 +47,9 @@ def compile_step(tcfg, state: slam.SLAMState, depth, intr, dt, guess=None):
     """
     step = jax.jit(_host_step, static_argnums=0, donate_argnums=1)
     args = (state, depth, intr, dt, guess)
-    # XLA:CPU vectorises for 256-bit registers by default; the step's many small loops run faster
-    # vectorised 512 wide, with the same poses, on AVX-512 and AVX2 machines alike (docs/method.md).
-    options = {"xla_cpu_prefer_vector_width": 512} if jax.default_backend() == "cpu" else None
+    options = TRACK_CPU_OPTIONS if jax.default_backend() == "cpu" else None
     return programs.compiled(("track", tcfg, programs.signature(args)), lambda: step.lower(tcfg, *args), options)
+
 
 
 def repeats(depth: np.ndarray, previous: np.ndarray | None) -> bool:

@@ -218,7 +218,7 @@ from sgad_jax.config import DataConfig, SyntheticConfig
 from sgad_jax.io.synthetic import SyntheticDataset
 cfg = resolve_config(None, None).track
 ds = SyntheticDataset(DataConfig(layout="synthetic", synthetic=SyntheticConfig(frames=5, width=320, height=240)))
-wide = {"xla_cpu_prefer_vector_width": 512}
+wide = system.TRACK_CPU_OPTIONS
 depth = jnp.asarray(ds[1].depth)
 clouds = jax.jit(lambda d: gicp.frame_clouds(cfg, d, ds.intrinsics)).lower(depth)
 a, b = (jax.tree.leaves(clouds.compile(o)(depth)) for o in (None, wide))
@@ -242,10 +242,11 @@ print(json.dumps({
 @pytest.mark.slow
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the 512-bit vectors are an XLA:CPU option")
 def test_step_compiled_for_wide_vectors_tracks_as_the_default_compile():
-    """`compile_step` vectorises the step 512 wide on CPU. XLA:CPU has miscompiled functions at that
-    width (jaxlib 0.10.2's atan returns wrong values, jax-ml/jax#39352): the step compiled so must
-    give the default compile's frame clouds (points, covariances, normals) and poses. In a process of its
-    own, with XLA's default flags: the suite's fast-compile flags (conftest.py) take another path."""
+    """`compile_step` compiles the step with `TRACK_CPU_OPTIONS` (512-bit vectors) on CPU. XLA:CPU
+    has miscompiled functions at that width (jaxlib 0.10.2's atan returns wrong values,
+    jax-ml/jax#39352): the step compiled so must give the default compile's frame clouds (points,
+    covariances, normals) and poses. In a process of its own, with XLA's default flags: the suite's
+    fast-compile flags (conftest.py) take another path."""
     import json
     import os
     import subprocess
