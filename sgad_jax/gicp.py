@@ -44,6 +44,9 @@ def mat_to_sym(m: Float[Array, "*m 3 3"]) -> Float[Array, "6 *m"]:
     return jnp.stack([m[..., 0, 0], m[..., 1, 1], m[..., 2, 2], m[..., 0, 1], m[..., 0, 2], m[..., 1, 2]])
 
 
+_TINY = float(jnp.finfo(jnp.float32).tiny)
+
+
 def _sym_eigenvalues(xx, yy, zz, xy, xz, yz):
     """Eigenvalues (largest, middle, smallest) of a symmetric 3x3 matrix, closed form.
 
@@ -55,7 +58,8 @@ def _sym_eigenvalues(xx, yy, zz, xy, xz, yz):
     p2 = a * a + b * b + c * c + 2.0 * p1
     p = jnp.sqrt(jnp.maximum(p2, 1e-30) / 6.0)
     det = a * (b * c - yz * yz) - xy * (xy * c - yz * xz) + xz * (xy * yz - b * xz)
-    r = jnp.clip(det / (2.0 * p * p * p), -1.0, 1.0)
+    # An exactly isotropic matrix has det = 0 and p^3 below float32's range: 0 / 0 without the floor.
+    r = jnp.clip(det / jnp.maximum(2.0 * p * p * p, _TINY), -1.0, 1.0)
     phi = jnp.arccos(r) / 3.0
     l1 = q + 2.0 * p * jnp.cos(phi)
     l3 = q + 2.0 * p * jnp.cos(phi + 2.0 * math.pi / 3.0)

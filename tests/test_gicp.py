@@ -37,6 +37,17 @@ def test_normalise_covariance_matches_eigh(seed):
         assert abs(abs(float(np.dot(np.asarray(n)[:, 0], V[:, 0]))) - 1.0) < 1e-3
 
 
+@pytest.mark.parametrize("scale", [1e-6, 1e-4, 1.0, 4.0])
+def test_normalise_covariance_of_a_ball(scale):
+    """An exactly isotropic covariance is a valid shape (no normal direction): the identity after
+    normalisation, finite, kept; the eigenvalues are all ``scale``."""
+    cov = jnp.asarray([[scale], [scale], [scale], [0.0], [0.0], [0.0]], jnp.float32)
+    np.testing.assert_allclose(np.stack(gicp._sym_eigenvalues(*cov))[:, 0], [scale] * 3, rtol=1e-6)
+    out, n, ok = gicp.normalise_covariance(cov, 1e-3)
+    assert bool(ok[0]) and np.isfinite(np.asarray(n)).all()
+    np.testing.assert_allclose(np.asarray(out)[:, 0], [1, 1, 1, 0, 0, 0], atol=1e-6)
+
+
 def test_sym_helpers_match_numpy():
     rng = np.random.default_rng(1)
     C = np.stack([_spd(s) for s in range(10)])
