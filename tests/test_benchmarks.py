@@ -26,6 +26,8 @@ def test_bench_track_prints_both_trackers():
     assert out["frames"] == 6 and len(out["rounds_ms"]) == 2
     # both trackers follow the camera over 6 frames of fr1/xyz to within a centimetre
     assert out["ours_ate_cm"] < 1.0 and out["small_gicp_ate_cm"] < 1.0
+    # a frame-to-frame error is below the camera's motion (fr1/xyz moves about 1 cm a frame)
+    assert 0.0 < out["ours_rpe_cm"] < 1.0 and 0.0 < out["small_gicp_rpe_cm"] < 1.0
 
 
 def test_structured_light_simulation_against_its_error_model():
