@@ -51,7 +51,6 @@ def compile_step(tcfg, state: slam.SLAMState, depth, intr, dt, guess=None):
     return programs.compiled(("track", tcfg, programs.signature(args)), lambda: step.lower(tcfg, *args), options)
 
 
-
 def repeats(depth: np.ndarray, previous: np.ndarray | None) -> bool:
     """Whether a depth image is, bit for bit, the previous frame's (a repeated capture)."""
     if previous is None:
