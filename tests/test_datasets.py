@@ -7,7 +7,6 @@ import math
 import os
 import pathlib
 import threading
-import time
 
 import cv2
 import numpy as np
@@ -16,6 +15,7 @@ import pytest
 from sgad_jax.config import DataConfig
 from sgad_jax.io import datasets as ds
 from sgad_jax.config import ConfigError, SLAMConfig, apply_overrides
+from sgad_jax.io import base
 from sgad_jax.io.base import DatasetError, add_depth_noise, inpaint_depth, read_image
 from sgad_jax.io.datasets import (
     GenericDataset,
@@ -627,52 +627,49 @@ def test_size_mismatch(tmp_path):
     assert str(bad_depth) in str(e.value)
 
 
-def test_frames_read_ahead_in_order_and_fail_at_the_bad_frame(tmp_path):
+def test_frames_read_in_order_and_fail_at_the_bad_frame(tmp_path):
     root = make_generic(tmp_path, n=6)
     d = GenericDataset(root, cfg(root))
-    got = list(d.frames(start=2, ahead=3))
+    got = list(d.frames(start=2))
     assert [s.index for s in got] == [2, 3, 4, 5]
     for s in got:
         want = d[s.index]
         assert np.array_equal(s.depth, want.depth) and np.array_equal(s.rgb, want.rgb)
     assert not any("depth_filled" in vars(s) for s in got)  # inpainted only when first asked for
-    filled = list(d.frames(start=3, fill=lambda i: i == 4))  # ... or by the reading thread, for mapping
+    filled = list(d.frames(start=3, fill=lambda i: i == 4))  # ... or with the batch, for mapping
     assert ["depth_filled" in vars(s) for s in filled] == [False, True, False]
     np.testing.assert_array_equal(filled[1].depth_filled, inpaint_depth(filled[1].depth))
-    # Frame 3 is corrupt: it is read (and fails) while frame 1 is still being handed out, but the
-    # error comes when its turn comes, after every frame before it.
+    # Frame 3 is corrupt: it is read (and fails) in the batch of frames 0-5, before frame 0 is
+    # handed out, but the error comes when its turn comes, after every frame before it.
     bad = root / "depth/0003.png"
     bad.write_bytes(b"not a png")
     seen = []
     with pytest.raises(DatasetError, match="cannot decode") as e:
-        for s in d.frames(ahead=2):
+        for s in d.frames():
             seen.append(s.index)
     assert seen == [0, 1, 2] and str(bad) in str(e.value)
 
 
-def test_frames_read_by_the_caller_when_the_reading_thread_gets_no_core(tmp_path, monkeypatch):
-    """The reading thread runs at a low priority, so on a machine busy with other work it may hardly
-    run at all: the frames still come, in order, read by the caller. Here the thread is held for
-    30 s inside its first read."""
-    root = make_generic(tmp_path, n=6)
+def test_frames_read_a_batch_at_once_and_no_further(tmp_path, monkeypatch):
+    """A batch's frames are read at the same time (two at once here: each read waits at a barrier
+    for another), and never more than a batch ahead of the frame handed out."""
+    root = make_generic(tmp_path, n=7)
     d = GenericDataset(root, cfg(root))
-    release, real = threading.Event(), GenericDataset._read_ahead
+    monkeypatch.setattr(base, "READ_BATCH_FRAMES", 2)
+    monkeypatch.setattr(base, "_cores", lambda: 2)
+    together, real, handed, ahead = threading.Barrier(2, timeout=10), GenericDataset._read_ahead, [-1], []
 
     def read(self, i, fill):
-        if threading.current_thread().name.startswith("sgad-read"):
-            release.wait(30)
+        ahead.append(i - handed[0])
+        if i < 6:  # the last batch holds frame 6 alone
+            together.wait()
         return real(self, i, fill)
 
     monkeypatch.setattr(GenericDataset, "_read_ahead", read)
-    t0 = time.perf_counter()
-    try:
-        got = list(d.frames(ahead=2, fill=lambda i: i == 1))
-    finally:
-        release.set()
-    assert time.perf_counter() - t0 < 10
-    assert [s.index for s in got] == list(range(6)) and "depth_filled" in vars(got[1])
-    for s in got:
-        assert np.array_equal(s.depth, d[s.index].depth) and np.array_equal(s.rgb, d[s.index].rgb)
+    for s in d.frames():
+        assert s.index == handed[0] + 1
+        handed[0] = s.index
+    assert handed[0] == 6 and len(ahead) == 7 and max(ahead) <= 2
 
 
 def test_malformed_files(tmp_path):

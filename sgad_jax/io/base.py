@@ -8,15 +8,12 @@ selection (start, stride, max frames), depth truncation, integer downscaling and
 
 from __future__ import annotations
 
-import collections
 import concurrent.futures
 import copy
 import dataclasses
 import functools
 import os
 import pathlib
-import sys
-import threading
 import zlib
 
 import cv2
@@ -114,21 +111,15 @@ def read_image(path: pathlib.Path, *, depth: bool = False, decode: bool = True) 
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
-#: How long :meth:`Dataset.frames` waits for a frame its reading thread is decoding before it reads
-#: the frame itself (a frame's decode takes a few milliseconds on a free core).
-READER_PATIENCE_S = 0.05
+#: :meth:`Dataset.frames` reads frames in batches of at most this many bytes of images (colour,
+#: depth and inpainted depth) and at most ``READ_BATCH_FRAMES`` frames.
+READ_BATCH_BYTES = 96 << 20
+READ_BATCH_FRAMES = 32
 
 
-def _yield_to_compute() -> None:
-    """Lower the calling thread's scheduling priority (nice +10; Linux gives each thread its own),
-    so that on a machine with few cores reading ahead takes the cores the tracking and mapping
-    steps leave idle rather than slowing them. Not Linux's idle class: with it, runs with mapping
-    stalled on a machine busy with other work (docs/method.md)."""
-    if sys.platform.startswith("linux"):  # elsewhere the id would name a process
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
-        except OSError:  # not permitted here: read at the same priority
-            pass
+def _cores() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def _truncated(data: np.ndarray) -> bool:
@@ -372,51 +363,42 @@ class Dataset:
             inpaint=self.cfg.inpaint,
         )
 
-    def frames(self, start: int = 0, ahead: int = 2, *, skip_bad: bool = False, fill=None):
-        """``self[i]`` for ``i`` from ``start`` on, read on a background thread up to ``ahead``
-        frames before they are asked for, so that decoding overlaps the caller's work; for the
-        frames ``i`` with ``fill(i)`` true the thread also inpaints the depth
-        (:attr:`RGBDSample.depth_filled`, which mapping needs), off the caller's path.
+    def frames(self, start: int = 0, *, skip_bad: bool = False, fill=None):
+        """``self[i]`` for ``i`` from ``start`` on, read in batches: a batch's frames are decoded
+        at once, one per core, then handed out in order while nothing reads; for the frames ``i``
+        with ``fill(i)`` true the depth is also inpainted (:attr:`RGBDSample.depth_filled`, which
+        mapping needs) in the batch.
 
-        The thread runs at a low priority (:func:`_yield_to_compute`). A frame it has not started
-        when its turn comes, or not finished within ``READER_PATIENCE_S``, is read by the caller
-        instead: on a machine busy with other work the thread gets little of the cores.
+        Why batches and not a thread reading beside the caller: the tracking step keeps every core
+        busy, so decoding beside it slows it (a 16-bit depth PNG is 2.5 ms of libpng), and decoding
+        on all cores between steps is faster overall (docs/method.md, "Reading frames").
 
         A frame that cannot be read raises its :class:`DatasetError` when its turn comes, after
         every frame before it has been yielded; with ``skip_bad`` it is yielded as a
         :class:`BadFrame` instead, and reading goes on.
         """
-        pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="sgad-read", initializer=_yield_to_compute)
-        pending, nxt = collections.deque(), start
+        full = self.intrinsics_full
+        pixels = full.width * full.height // max(self.cfg.downscale, 1) ** 2
+        batch = max(1, min(READ_BATCH_FRAMES, READ_BATCH_BYTES // (11 * pixels)))  # 3 + 4 + 4 bytes a pixel
+        pool = concurrent.futures.ThreadPoolExecutor(min(_cores(), batch), thread_name_prefix="sgad-read")
         try:
-            while True:
-                while nxt < len(self) and len(pending) <= ahead:
-                    pending.append(pool.submit(self._read_ahead, nxt, fill))
-                    nxt += 1
-                if not pending:
-                    return
-                i = nxt - len(pending)
-                future = pending.popleft()
-                try:
-                    if future.cancel():  # not started: the thread is behind
-                        sample = self._read_ahead(i, fill)
-                    else:
-                        try:
-                            sample = future.result(timeout=READER_PATIENCE_S)
-                        except concurrent.futures.TimeoutError:  # started, and starved of cores
-                            sample = self._read_ahead(i, fill)
-                except DatasetError as err:
-                    if not skip_bad:
-                        raise
-                    sample = BadFrame(i, int(self.selection[i]), str(err))
-                yield sample
+            for first in range(start, len(self), batch):
+                futures = [pool.submit(self._read_ahead, i, fill) for i in range(first, min(first + batch, len(self)))]
+                for i, future in enumerate(futures, first):
+                    try:
+                        sample = future.result()
+                    except DatasetError as err:
+                        if not skip_bad:
+                            raise
+                        sample = BadFrame(i, int(self.selection[i]), str(err))
+                    yield sample
         finally:
-            pool.shutdown(wait=False, cancel_futures=True)  # a starved read left running ends on its own
+            pool.shutdown(wait=True, cancel_futures=True)  # at most the batch's reads in hand
 
     def _read_ahead(self, i: int, fill) -> RGBDSample:
         sample = self[i]
         if fill is not None and fill(i):
-            sample.depth_filled  # noqa: B018 (computed and cached now, on the reading thread)
+            sample.depth_filled  # noqa: B018 (computed and cached now, with the batch)
         return sample
 
     def describe(self, j: int, *, depth: bool = False) -> str:
