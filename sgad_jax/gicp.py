@@ -217,8 +217,11 @@ def _median_consistent(
     plane's 3x3 depths is its centre value whatever the slope (the values pair up around it), so
     clean surfaces pass, and it ignores outliers while they are fewer than half the neighbourhood.
     """
-    pad = jnp.pad(depth, 1)
     hs, ws = d.shape
+    h, w = depth.shape
+    # Pad by one pixel only if a 3x3 neighbourhood reaches past the image (a copy of the full image).
+    inside = off >= 1 and off + s * (hs - 1) + 1 < h and off + s * (ws - 1) + 1 < w
+    pad, off = (depth, off - 1) if inside else (jnp.pad(depth, 1), off)
     vals = []
     for di in (0, 1, 2):
         for dj in (0, 1, 2):
