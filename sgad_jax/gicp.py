@@ -17,6 +17,7 @@ faster than batched ``einsum`` / ``eigh`` on ``(m, 3, 3)``.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -45,20 +46,6 @@ def mat_to_sym(m: Float[Array, "*m 3 3"]) -> Float[Array, "6 *m"]:
 
 _TINY = float(jnp.finfo(jnp.float32).tiny)
 
-#: arccos(x) = sqrt(1 - x) * poly(x) on [0, 1], error under 2e-8 (Abramowitz and Stegun 4.4.46).
-_ACOS = (1.5707963050, -0.2145988016, 0.0889789874, -0.0501743046, 0.0308918810, -0.0170881256, 0.0066700901, -0.0012624911)
-
-
-def _arccos(x):
-    """``arccos`` of ``x`` in [-1, 1] by a polynomial: XLA:CPU computes ``jnp.arccos`` through
-    ``atan2``, one element at a time, a quarter of the closed-form eigenvalues' time."""
-    a = jnp.abs(x)
-    poly = _ACOS[-1]
-    for c in _ACOS[-2::-1]:
-        poly = poly * a + c
-    r = jnp.sqrt(1.0 - a) * poly
-    return jnp.where(x < 0, math.pi - r, r)
-
 
 def _sym_eigenvalues(xx, yy, zz, xy, xz, yz):
     """Eigenvalues (largest, middle, smallest) of a symmetric 3x3 matrix, closed form.
@@ -73,7 +60,7 @@ def _sym_eigenvalues(xx, yy, zz, xy, xz, yz):
     det = a * (b * c - yz * yz) - xy * (xy * c - yz * xz) + xz * (xy * yz - b * xz)
     # An exactly isotropic matrix has det = 0 and p^3 below float32's range: 0 / 0 without the floor.
     r = jnp.clip(det / jnp.maximum(2.0 * p * p * p, _TINY), -1.0, 1.0)
-    phi = _arccos(r) / 3.0
+    phi = jnp.arccos(r) / 3.0
     l1 = q + 2.0 * p * jnp.cos(phi)
     l3 = q + 2.0 * p * jnp.cos(phi + 2.0 * math.pi / 3.0)
     l2 = 3.0 * q - l1 - l3
@@ -151,55 +138,50 @@ def normalise_covariance(cov: Float[Array, "6 *m"], eps: float) -> tuple[Float[A
 # Frame preprocessing
 
 #: Up to this many entries (min(k, n - k) of n), :func:`_nearest` keeps a sorted list instead of
-#: counting ranks: the list costs about 2t min/max per offset against the ranks' fixed n, so it
-#: wins for short lists (TUM drops the 2 farthest of 25) and loses beyond about t = 6.
+#: counting ranks: the list costs about 2t compare-and-selects per offset against the ranks' fixed
+#: n, so it wins for short lists (TUM drops the 2 farthest of 25) and loses beyond about t = 6.
 _LIST_MAX = 4
-
-#: Distances are ranked on their leading 8 mantissa bits (0.4% apart), ties by window position.
-#: Symmetric neighbours on the image grid lie at nearly equal distances, which one program's
-#: rounding orders one way and another's (a rewrite, another fusion, a GPU) the other way: exact
-#: ranks made every rewrite of the tracking step move the poses (docs/method.md, "Neighbour ranks").
-_RANK_DROP_BITS = 15
-
-
-def _rank_keys(D: Float[Array, "n *m"]) -> Array:
-    """Integer keys ordering ``D >= 0`` (``inf`` last) along its first axis by the distance's
-    leading bits, then by index: distinct, so a rank is a count of smaller keys."""
-    n = D.shape[0]
-    order = jnp.arange(n, dtype=jnp.int32).reshape((n,) + (1,) * (D.ndim - 1))
-    bits = jax.lax.bitcast_convert_type(jax.lax.stop_gradient(D), jnp.int32)  # >= 0: ordered as the floats
-    return (bits >> _RANK_DROP_BITS) * n + order
 
 
 def _nearest(D: Float[Array, "n *m"], k: int) -> Bool[Array, "n *m"]:
-    """Whether each of the ``n`` candidate distances (``>= 0``) is among the ``k`` smallest and
-    finite, distances compared on their leading bits (``_RANK_DROP_BITS``) and ties broken by the
-    lower candidate index. No ``top_k`` or sort (slow on XLA:CPU).
+    """Whether each of the ``n`` candidate distances is among the ``k`` smallest (ties: the lower
+    candidate index first) and finite, i.e. ``rank < k`` with ``rank_o = #{o' : D_o' < D_o, or
+    D_o' = D_o and o' < o}``. No ``top_k`` or sort (slow on XLA:CPU).
 
     When ``k`` or ``n - k`` is small, one pass over the candidates keeps a sorted list of the k
-    smallest keys (or the n - k largest, those dropped). Otherwise each rank is counted: a loop
-    over ``o'`` (rolled but for 5 steps a turn, so that the program and its compile time stay
+    nearest (or the n - k farthest, those dropped) with their indices; a candidate comes after
+    every listed one of equal distance, as its index is higher. Otherwise each rank is counted: a
+    loop over ``o'`` (rolled but for 5 steps a turn, so that the program and its compile time stay
     small) with 8-bit counts, which keep the ``(n, *m)`` counts read and written each turn small.
     """
     n = D.shape[0]
     if k >= n:
         return jnp.isfinite(D)
-    keys = _rank_keys(D)
+    order = jnp.arange(n).reshape((n,) + (1,) * (D.ndim - 1))
     if min(k, n - k) <= _LIST_MAX:
         drop = n - k < k
         t = n - k if drop else k
-        inner, outer = (jnp.minimum, jnp.maximum) if drop else (jnp.maximum, jnp.minimum)
+        ahead = (lambda x, s: x >= s) if drop else (lambda x, s: x < s)  # noqa: E731
 
-        def visit(o, s):  # s: the t smallest keys so far, ascending (the t largest, descending)
-            return tuple(outer(s[i], inner(s[i - 1], keys[o]) if i else keys[o]) for i in range(t))
+        def visit(o, lists):
+            s, ix = lists
+            go = [ahead(D[o], si) for si in s]  # the new candidate goes before entry i
+            shift = lambda a, new: tuple(  # noqa: E731
+                jnp.where(go[0], new, a[0]) if i == 0 else jnp.where(go[i - 1], a[i - 1], jnp.where(go[i], new, a[i]))
+                for i in range(t)
+            )
+            return shift(s, D[o]), shift(ix, o)
 
-        blank = jnp.iinfo(jnp.int32).min if drop else jnp.iinfo(jnp.int32).max
-        last = jax.lax.fori_loop(0, n, visit, (jnp.full(D.shape[1:], blank, jnp.int32),) * t, unroll=5)[-1]
-        return (keys < last if drop else keys <= last) & jnp.isfinite(D)
+        blank = jnp.full(D.shape[1:], -jnp.inf if drop else jnp.inf, D.dtype)
+        init = ((blank,) * t, (jnp.full(D.shape[1:], -1, jnp.int32),) * t)
+        ix = jax.lax.fori_loop(0, n, visit, init, unroll=5)[1]
+        listed = functools.reduce(jnp.logical_or, [i == order for i in ix])
+        return (~listed if drop else listed) & jnp.isfinite(D)
     counts = jnp.int8 if n <= 127 else jnp.int32
 
     def count(o2, rank):
-        return rank + (keys[o2] < keys).astype(counts)
+        d2 = D[o2]
+        return rank + ((d2 < D) | ((d2 == D) & (o2 < order))).astype(counts)
 
     rank = jax.lax.fori_loop(0, n, count, jnp.zeros(D.shape, counts), unroll=5)
     return (rank < k) & jnp.isfinite(D)  # ranks < n
@@ -277,47 +259,30 @@ def frame_clouds(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
         valid = valid & ok
         if cfg.median_depth:  # nine measurements, not one: noise that passed the gate is mostly removed
             tracked = med
-    p = _backproject(tracked, valid, u, v, intr)
-    w, neigh = _window_neighbours(cfg, p, valid)
-    cloud = _shapes(cfg, p, valid, w, neigh)
-    if tracked is d:
-        return cloud, cloud
-    # T's points at the measured depths keep the neighbours picked at the median ones: the same
-    # patch, chosen on less noisy depths, and one neighbour search a frame instead of two.
-    p = _backproject(d, valid, u, v, intr)
-    return cloud, _shapes(cfg, p, valid, w, _window(cfg, p))
+    cloud = _cloud(cfg, tracked, valid, u, v, intr)
+    return cloud, (cloud if tracked is d else _cloud(cfg, d, valid, u, v, intr))
 
 
-def _backproject(d, valid, u, v, intr: Intrinsics):
+def _cloud(cfg: TrackConfig, d, valid, u, v, intr: Intrinsics) -> PointCloud:
+    """Points of the strided depths ``d`` where ``valid``, with their window covariances."""
     d = jnp.where(valid, d, 0.0)
-    return (d * (u - intr.cx) / intr.fx, d * (v - intr.cy) / intr.fy, d)
+    p = (d * (u - intr.cx) / intr.fx, d * (v - intr.cy) / intr.fy, d)
 
-
-def _window(cfg: TrackConfig, c):
-    """The strided grid's ``cfg.window`` x ``cfg.window`` neighbours of each point of the
-    component(s) ``c``: a list, by window position, of shifted copies (zero outside the image)."""
     r = cfg.window // 2
-    hs, ws = c[0].shape
-    pad = [jnp.pad(a, r) for a in c]
-    return [[jax.lax.dynamic_slice(a, (r + di, r + dj), (hs, ws)) for a in pad] for di in range(-r, r + 1) for dj in range(-r, r + 1)]
-
-
-def _window_neighbours(cfg: TrackConfig, p, valid):
-    """Weights (1 or 0, by window position) of each point's ``cfg.k`` nearest window neighbours,
-    neighbours without depth or across a depth jump excluded, and the neighbours' points."""
-    neigh = _window(cfg, p)
-    ok = [o for (o,) in _window(cfg, (valid,))]
-    gate = cfg.depth_gate * p[2]
-    dist = [
-        jnp.where(o & (jnp.abs(q[2] - p[2]) <= gate), (q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2 + (q[2] - p[2]) ** 2, jnp.inf)
-        for q, o in zip(neigh, ok)
-    ]
-    return list(_nearest(jnp.stack(dist), cfg.k).astype(jnp.float32)), neigh
-
-
-def _shapes(cfg: TrackConfig, p, valid, w, neigh) -> PointCloud:
-    """The points ``p`` where ``valid``, with the normalised covariances of their weighted window
-    neighbours ``neigh``."""
+    hs, ws = d.shape
+    pad = lambda a: jnp.pad(a, r)  # noqa: E731
+    shifted = lambda a, di, dj: jax.lax.dynamic_slice(a, (r + di, r + dj), (hs, ws))  # noqa: E731
+    pp, vp = [pad(c) for c in p], pad(valid)
+    gate = cfg.depth_gate * d
+    neigh, dist = [], []
+    for di in range(-r, r + 1):
+        for dj in range(-r, r + 1):
+            q = [shifted(c, di, dj) for c in pp]
+            ok = shifted(vp, di, dj) & (jnp.abs(q[2] - d) <= gate)
+            d2 = (q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2 + (q[2] - p[2]) ** 2
+            neigh.append(q)
+            dist.append(jnp.where(ok, d2, jnp.inf))
+    w = list(_nearest(jnp.stack(dist), cfg.k).astype(jnp.float32))
     cnt = sum(w)
     inv = 1.0 / jnp.maximum(cnt, 1.0)
     mean = [sum(wi * q[c] for wi, q in zip(w, neigh)) * inv for c in range(3)]
