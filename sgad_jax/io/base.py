@@ -371,7 +371,7 @@ class Dataset:
 
         Why batches and not a thread reading beside the caller: the tracking step keeps every core
         busy, so decoding beside it slows it (a 16-bit depth PNG is 2.5 ms of libpng), and decoding
-        on all cores between steps is faster overall (docs/method.md, "Reading frames").
+        on all cores between steps is faster overall (docs/method.md, "Frames are read in batches").
 
         A frame that cannot be read raises its :class:`DatasetError` when its turn comes, after
         every frame before it has been yielded; with ``skip_bad`` it is yielded as a
