@@ -111,9 +111,9 @@ def read_image(path: pathlib.Path, *, depth: bool = False, decode: bool = True) 
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
-#: :meth:`Dataset.frames` reads frames in batches of at most this many bytes of images (colour,
-#: depth and inpainted depth) and at most ``READ_BATCH_FRAMES`` frames.
-READ_BATCH_BYTES = 96 << 20
+#: :meth:`Dataset.frames` reads frames in batches of at most this many bytes of images (depth, and
+#: colour and inpainted depth where they are made) and at most ``READ_BATCH_FRAMES`` frames.
+READ_BATCH_BYTES = 48 << 20
 READ_BATCH_FRAMES = 32
 
 
@@ -379,7 +379,8 @@ class Dataset:
         """
         full = self.intrinsics_full
         pixels = full.width * full.height // max(self.cfg.downscale, 1) ** 2
-        batch = max(1, min(READ_BATCH_FRAMES, READ_BATCH_BYTES // (11 * pixels)))  # 3 + 4 + 4 bytes a pixel
+        per_pixel = 4 + 3 * self.colour + 4 * (fill is not None)  # float depth, RGB, inpainted depth
+        batch = max(1, min(READ_BATCH_FRAMES, READ_BATCH_BYTES // (per_pixel * pixels)))
         pool = concurrent.futures.ThreadPoolExecutor(min(_cores(), batch), thread_name_prefix="sgad-read")
         try:
             for first in range(start, len(self), batch):
