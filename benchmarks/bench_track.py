@@ -89,31 +89,38 @@ def _stage_times(tcfg, geom, depth, intr, T) -> dict:
     and insertion run once per frame and are timed as calls; a Gauss-Newton step and a candidate
     lookup run inside the solver's loop and are timed there, as the cost of one more iteration
     (a separate call per step would add the call's own overhead), on the full
-    cloud and on the first coarse level (``*_coarse``: every ``tcfg.coarse[0]``-th point)."""
+    cloud and on the first coarse level (``*_coarse``: every ``tcfg.coarse[0]``-th point). Each
+    stage is compiled with the step's compiler options, so it runs as it does inside the step."""
     import dataclasses
 
     import jax
 
-    from sgad_jax import geometry, gicp
+    from sgad_jax import geometry, gicp, system
     from sgad_jax.track import _gauss_newton, transform_cloud
+
+    options = system.TRACK_CPU_OPTIONS if jax.default_backend() == "cpu" else None
+
+    def program(f, *args, donate=()):
+        return jax.jit(f, donate_argnums=donate).lower(*args).compile(compiler_options=options)
 
     cloud = jax.jit(gicp.frame_points, static_argnums=0)(tcfg, depth, intr)
 
     def per_iteration(points, fresh):  # fresh=0: a lookup before every step; 1e9: only the first
         def run(n):
             cf = dataclasses.replace(tcfg, max_iterations=n, tolerance=0.0)
-            return jax.jit(lambda g, cl, T: _gauss_newton(cf, g, cl, T, fresh)[0].wxyz_xyz)
+            return program(lambda g, cl, T: _gauss_newton(cf, g, cl, T, fresh)[0].wxyz_xyz, geom, points, T)
 
         return (_median_ms(run(8), geom, points, T) - _median_ms(run(1), geom, points, T)) / 7
 
     # Both clouds, as the step extracts them (the tracked one and, with median depths, the one T receives).
-    out = {"frame_points": _median_ms(jax.jit(gicp.frame_clouds, static_argnums=0), tcfg, depth, intr)}
+    out = {"frame_points": _median_ms(program(lambda d, i: gicp.frame_clouds(tcfg, d, i), depth, intr), depth, intr)}
     for name, c in (("", 1), *(("_coarse", c) for c in tcfg.coarse[:1])):  # coarse: every c-th point
         points = jax.tree.map(lambda a, c=c: a[..., ::c], cloud)
         step = per_iteration(points, 1e9)
         out["gauss_newton_step" + name] = step
         out["candidate_lookup" + name] = per_iteration(points, 0.0) - step
-    out["insert"] = _median_ms(jax.jit(geometry.insert, donate_argnums=0), geom, transform_cloud(T, cloud), donated=True)
+    cloud_w = transform_cloud(T, cloud)
+    out["insert"] = _median_ms(program(geometry.insert, geom, cloud_w, donate=(0,)), geom, cloud_w, donated=True)
     return out
 
 
@@ -166,19 +173,22 @@ def main() -> None:
     # that each round's pair of medians is measured within seconds of each other (a shared
     # machine's speed drifts within minutes). Poses and ATEs are the first round's (every
     # round computes the same).
+    # Depth and intrinsics on the device before the step, as `sgad-jax run` stages them (its reader
+    # copies each depth with its batch; the intrinsics once).
+    staged, intr_dev = [jax.device_put(d) for d in depths], jax.device_put(intr)
     t0 = time.perf_counter()
-    step = system.compile_step(tcfg, slam.init_state(tcfg, system.initial_pose(ds)), jnp.asarray(depths[0]), intr, dts[0])
+    step = system.compile_step(tcfg, slam.init_state(tcfg, system.initial_pose(ds)), staged[0], intr_dev, dts[0])
     compile_s = time.perf_counter() - t0
 
     def run_ours():
         state = slam.init_state(tcfg, system.initial_pose(ds))
         poses, times, iters = [], [], []
-        for depth, dt, same in zip(depths, dts, repeated):
+        for depth, dt, same in zip(staged, dts, repeated):
             if same:
                 poses.append(poses[-1])
                 continue
             t0 = time.perf_counter()
-            state, T, pose, info, _ = step(state, depth, intr, dt, None)  # a host array, as read
+            state, T, pose, info, _ = step(state, depth, intr_dev, dt, None)
             pose = np.asarray(pose)
             times.append(time.perf_counter() - t0)
             poses.append(pose)

@@ -220,7 +220,8 @@ def run(
         try:
             # `fill`: the frames the system will map, by run index (a skipped frame shifts the system's
             # count; a wrong guess only moves a frame's inpainting back to the main thread or wastes it).
-            for sample in ds.frames(start, skip_bad=True, fill=None if track_only else system.maps):
+            # `stage`: depth goes to the device with its batch, not inside the tracking step.
+            for sample in ds.frames(start, skip_bad=True, fill=None if track_only else system.maps, stage=jax.device_put):
                 i = sample.index
                 problem = sample.reason if isinstance(sample, BadFrame) else _timestamp_problem(ds, sample, system.stamps)
                 if problem and on_bad_frame == "stop":

@@ -113,6 +113,7 @@ class SLAM:
         if holdout_every < 0:
             raise ConfigError(f"--holdout-every must be >= 0, got {holdout_every}")
         self.cfg, self.intr = cfg, intr
+        self._step_intr = jax.device_put(intr)  # once: host scalars would be copied in at every step
         self.holdout_every, self.source = holdout_every, source
         self.holdout: list[int] = []  # run indices of the held-out frames
         self.between: list[int] = []  # frames between keyframes (map.every > 1) not yet rendered and scored
@@ -166,6 +167,8 @@ class SLAM:
             pose = self.poses[-1]
         else:
             pose = self._track(sample, frame)
+        if getattr(sample, "depth_device", None) is not None:
+            sample.depth_device = None  # released: a sample kept for scoring keeps its host arrays only
         self._last_depth = sample.depth
         self.poses.append(pose)
         self.stamps.append(float(sample.timestamp))
@@ -197,18 +200,19 @@ class SLAM:
             self.state = dataclasses.replace(self.state, recent=self.mapper.flush(self.state.recent))
 
     def _track(self, sample, frame) -> np.ndarray:
-        # The host array as read: the compiled step takes it without jnp.asarray's extra copy.
-        depth = sample.depth
+        # The device copy the reader staged (Dataset.frames), else the host array as read (the
+        # compiled step copies it in, without jnp.asarray's extra copy).
+        depth = sample.depth if getattr(sample, "depth_device", None) is None else sample.depth_device
         dt = np.float32(sample.depth_timestamp - self.depth_stamps[-1] if self.depth_stamps else 0.0)
         guess = None
         if self._predict is not None:
             guess = self.mapper.refine_guess(self.state.recent, frame, self._predict(self.cfg.track, self.state.track, dt))
         if self._step is None:
             t0 = time.perf_counter()
-            self._step = compile_step(self.cfg.track, self.state.track, depth, self.intr, dt, guess)
+            self._step = compile_step(self.cfg.track, self.state.track, depth, self._step_intr, dt, guess)
             self.compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        state, _, pose, info, ins = self._step(self.state.track, depth, self.intr, dt, guess)
+        state, _, pose, info, ins = self._step(self.state.track, depth, self._step_intr, dt, guess)
         pose = np.asarray(pose)
         if not np.isfinite(pose).all():
             raise TrackingDiverged("tracking diverged (non-finite pose)")

@@ -9,6 +9,7 @@ import pathlib
 import threading
 
 import cv2
+import jax
 import numpy as np
 import pytest
 
@@ -639,6 +640,9 @@ def test_frames_read_in_order_and_fail_at_the_bad_frame(tmp_path):
     filled = list(d.frames(start=3, fill=lambda i: i == 4))  # ... or with the batch, for mapping
     assert ["depth_filled" in vars(s) for s in filled] == [False, True, False]
     np.testing.assert_array_equal(filled[1].depth_filled, inpaint_depth(filled[1].depth))
+    assert all(s.depth_device is None for s in got)  # staged on the device only when asked
+    staged = list(d.frames(start=4, stage=jax.device_put))
+    assert all(isinstance(s.depth_device, jax.Array) and np.array_equal(np.asarray(s.depth_device), s.depth) for s in staged)
     # Frame 3 is corrupt: it is read (and fails) in the batch of frames 0-5, before frame 0 is
     # handed out, but the error comes when its turn comes, after every frame before it.
     bad = root / "depth/0003.png"
@@ -659,11 +663,11 @@ def test_frames_read_a_batch_at_once_and_no_further(tmp_path, monkeypatch):
     monkeypatch.setattr(base, "_cores", lambda: 2)
     together, real, handed, ahead = threading.Barrier(2, timeout=10), GenericDataset._read_ahead, [-1], []
 
-    def read(self, i, fill):
+    def read(self, i, fill, stage):
         ahead.append(i - handed[0])
         if i < 6:  # the last batch holds frame 6 alone
             together.wait()
-        return real(self, i, fill)
+        return real(self, i, fill, stage)
 
     monkeypatch.setattr(GenericDataset, "_read_ahead", read)
     for s in d.frames():

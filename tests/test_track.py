@@ -298,6 +298,24 @@ def test_repeated_depth_image(scene, hold):
 
 
 @pytest.mark.slow
+def test_staged_depth_tracks_as_the_host_array(scene):
+    """A depth the reader staged on the device (`Dataset.frames`' ``stage``) gives the host array's
+    poses to the bit, and the system releases the staged copy once the frame is added."""
+    from sgad_jax.config import SLAMConfig
+
+    ds = scene[0]
+    runs = []
+    for stage in (False, True):
+        system = SLAM(SLAMConfig(track=CFG), ds.intrinsics, initial_pose=lie.from_matrix(ds.gt_poses[0]), track_only=True)
+        samples = [ds[i] for i in range(3)]
+        for s in samples:
+            s.depth_device = jax.device_put(s.depth) if stage else None
+        runs.append(np.stack([system.add(s) for s in samples]))
+        assert all(s.depth_device is None for s in samples)
+    np.testing.assert_array_equal(*runs)
+
+
+@pytest.mark.slow
 def test_run_state_scans_over_a_sequence_like_the_host_loop():
     """The run state is one pytree and the step is pure: `lax.scan` of tracking and queueing each
     frame for mapping (`slam.track_step`, `slam.remember`) over a synthetic sequence gives the host

@@ -60,6 +60,8 @@ class RGBDSample:
         depth: (h, w) float32 measured depth in metres, 0 where missing.
         pose_gt: (4, 4) float64 camera-to-world ground truth (OpenCV axes), NaN if unknown.
         inpaint: whether :attr:`depth_filled` inpaints the holes of ``depth``.
+        depth_device: ``depth`` already on the device, where the reader staged it
+            (:meth:`Dataset.frames`' ``stage``), else None.
     """
 
     index: int
@@ -70,6 +72,7 @@ class RGBDSample:
     depth: np.ndarray
     pose_gt: np.ndarray
     inpaint: bool = True
+    depth_device: object = dataclasses.field(default=None, repr=False, compare=False)
 
     @functools.cached_property
     def depth_filled(self) -> np.ndarray:
@@ -363,11 +366,13 @@ class Dataset:
             inpaint=self.cfg.inpaint,
         )
 
-    def frames(self, start: int = 0, *, skip_bad: bool = False, fill=None):
+    def frames(self, start: int = 0, *, skip_bad: bool = False, fill=None, stage=None):
         """``self[i]`` for ``i`` from ``start`` on, read in batches: a batch's frames are decoded
         at once, one per core, then handed out in order while nothing reads; for the frames ``i``
         with ``fill(i)`` true the depth is also inpainted (:attr:`RGBDSample.depth_filled`, which
-        mapping needs) in the batch.
+        mapping needs) in the batch, and with ``stage`` (e.g. ``jax.device_put``) each depth is
+        copied to the device there too (:attr:`RGBDSample.depth_device`, which the tracking step
+        takes), so that the copy is not made inside the step.
 
         Why batches and not a thread reading beside the caller: the tracking step keeps every core
         busy, so decoding beside it slows it (a 16-bit depth PNG is 2.5 ms of libpng), and decoding
@@ -379,12 +384,12 @@ class Dataset:
         """
         full = self.intrinsics_full
         pixels = full.width * full.height // max(self.cfg.downscale, 1) ** 2
-        per_pixel = 4 + 3 * self.colour + 4 * (fill is not None)  # float depth, RGB, inpainted depth
+        per_pixel = 4 + 3 * self.colour + 4 * (fill is not None) + 4 * (stage is not None)  # depth, RGB, inpainted, staged
         batch = max(1, min(READ_BATCH_FRAMES, READ_BATCH_BYTES // (per_pixel * pixels)))
         pool = concurrent.futures.ThreadPoolExecutor(min(_cores(), batch), thread_name_prefix="sgad-read")
         try:
             for first in range(start, len(self), batch):
-                futures = [pool.submit(self._read_ahead, i, fill) for i in range(first, min(first + batch, len(self)))]
+                futures = [pool.submit(self._read_ahead, i, fill, stage) for i in range(first, min(first + batch, len(self)))]
                 for i, future in enumerate(futures, first):
                     try:
                         sample = future.result()
@@ -396,10 +401,12 @@ class Dataset:
         finally:
             pool.shutdown(wait=True, cancel_futures=True)  # at most the batch's reads in hand
 
-    def _read_ahead(self, i: int, fill) -> RGBDSample:
+    def _read_ahead(self, i: int, fill, stage) -> RGBDSample:
         sample = self[i]
         if fill is not None and fill(i):
             sample.depth_filled  # noqa: B018 (computed and cached now, with the batch)
+        if stage is not None:
+            sample.depth_device = stage(sample.depth)
         return sample
 
     def describe(self, j: int, *, depth: bool = False) -> str:
