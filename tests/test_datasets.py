@@ -7,6 +7,7 @@ import math
 import os
 import pathlib
 import threading
+import time
 
 import cv2
 import jax
@@ -656,22 +657,29 @@ def test_frames_read_in_order_and_fail_at_the_bad_frame(tmp_path):
 
 def test_frames_read_a_batch_at_once_and_no_further(tmp_path, monkeypatch):
     """A batch's frames are read at the same time (two at once here: each read waits at a barrier
-    for another), and never more than a batch ahead of the frame handed out."""
+    for another), all of them before the first is handed out (no read beside the caller's work),
+    and never more than a batch ahead of the frame handed out."""
     root = make_generic(tmp_path, n=7)
     d = GenericDataset(root, cfg(root))
     monkeypatch.setattr(base, "READ_BATCH_FRAMES", 2)
     monkeypatch.setattr(base, "_cores", lambda: 2)
     together, real, handed, ahead = threading.Barrier(2, timeout=10), GenericDataset._read_ahead, [-1], []
 
+    done = set()
+
     def read(self, i, fill, stage):
         ahead.append(i - handed[0])
         if i < 6:  # the last batch holds frame 6 alone
             together.wait()
-        return real(self, i, fill, stage)
+        sample = real(self, i, fill, stage)
+        time.sleep(0.05 * (i % 2))  # the batch's second frame finishes last
+        done.add(i)
+        return sample
 
     monkeypatch.setattr(GenericDataset, "_read_ahead", read)
     for s in d.frames():
         assert s.index == handed[0] + 1
+        assert {s.index - s.index % 2, min(s.index - s.index % 2 + 1, 6)} <= done  # its whole batch is read
         handed[0] = s.index
     assert handed[0] == 6 and len(ahead) == 7 and max(ahead) <= 2
 

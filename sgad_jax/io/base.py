@@ -390,6 +390,9 @@ class Dataset:
         try:
             for first in range(start, len(self), batch):
                 futures = [pool.submit(self._read_ahead, i, fill, stage) for i in range(first, min(first + batch, len(self)))]
+                # The whole batch before the first frame: handed out as soon as it is read, a frame's
+                # step would share the cores with the rest of the batch's decoding.
+                concurrent.futures.wait(futures)
                 for i, future in enumerate(futures, first):
                     try:
                         sample = future.result()
