@@ -91,6 +91,44 @@ def test_nearest_matches_a_stable_sort(k):
     np.testing.assert_array_equal(np.asarray(jax.jit(gicp._nearest, static_argnums=1)(jnp.asarray(D), k)), want)
 
 
+def _points(d, off, s):
+    vv, uu = np.mgrid[off : off + s * d.shape[0] : s, off : off + s * d.shape[1] : s]
+    return np.stack([(uu - 23.5) / 60.0 * d, (vv - 19.5) / 60.0 * d, d], -1)
+
+
+def _check_knn_covariances(cfg, cloud, d_pick, d_cov):
+    """Each point's covariance against numpy: its k nearest window neighbours picked on the depths
+    ``d_pick`` (3-D distance, stable sort, depth-jump gate), the covariance of those neighbours'
+    points at the depths ``d_cov``; points at ``d_cov``."""
+    off, s, r = cfg.stride // 2, cfg.stride, cfg.window // 2
+    P, Q = _points(d_pick, off, s), _points(d_cov, off, s)
+    hs, ws = d_pick.shape
+    checked = 0
+    for i in range(hs):
+        for j in range(ws):
+            if d_pick[i, j] <= cfg.min_depth:
+                assert not bool(cloud.valid[i * ws + j])
+                continue
+            cands = [
+                (a, b)
+                for di in range(-r, r + 1)
+                for dj in range(-r, r + 1)
+                for a, b in [(i + di, j + dj)]
+                if 0 <= a < hs and 0 <= b < ws and d_pick[a, b] > cfg.min_depth and abs(d_pick[a, b] - d_pick[i, j]) <= cfg.depth_gate * d_pick[i, j]
+            ]
+            dist = np.array([np.sum((P[a, b] - P[i, j]) ** 2) for a, b in cands])
+            nb = np.array([Q[cands[n]] for n in np.argsort(dist, kind="stable")[: cfg.k]])
+            lam, V = np.linalg.eigh(np.cov(nb.T, bias=True))
+            if not bool(cloud.valid[i * ws + j]) or lam[1] < 1e-2 * lam[2]:
+                continue
+            want = V @ np.diag([max(lam[0] / lam[1], cfg.eps), 1.0, lam[2] / lam[1]]) @ V.T
+            got = np.asarray(gicp.sym_to_mat(cloud.covs[:, i * ws + j]))
+            np.testing.assert_allclose(got, want, rtol=5e-3, atol=5e-3 * lam[2] / lam[1])
+            np.testing.assert_allclose(np.asarray(cloud.points[:, i * ws + j]), Q[i, j], rtol=1e-6)
+            checked += 1
+    assert checked > 0.8 * hs * ws - 20
+
+
 @pytest.mark.parametrize("k,window", [(10, 5), (23, 5), (6, 3), (30, 7), (4, 5)])
 def test_frame_points_match_brute_force_knn(k, window):
     """Covariance of each point from its k nearest (3-D) among the window, recomputed in numpy."""
@@ -98,38 +136,30 @@ def test_frame_points_match_brute_force_knn(k, window):
     cfg = TrackConfig(stride=2, k=k, window=window, depth_gate=0.1, eps=1e-3, median_gate=0.0)
     intr = make_intrinsics(60.0, 60.0, 23.5, 19.5, 48, 40)
     depth = _bumpy_depth()
-    cloud = gicp.frame_points(cfg, jnp.asarray(depth), intr)
+    _check_knn_covariances(cfg, gicp.frame_points(cfg, jnp.asarray(depth), intr), depth[1::2, 1::2], depth[1::2, 1::2])
 
-    off, s, r = cfg.stride // 2, cfg.stride, cfg.window // 2
-    d = depth[off::s, off::s]
-    vv, uu = np.mgrid[off : depth.shape[0] : s, off : depth.shape[1] : s]
-    P = np.stack([(uu - 23.5) / 60.0 * d, (vv - 19.5) / 60.0 * d, d], -1)
-    hs, ws = d.shape
-    checked = 0
-    for i in range(hs):
-        for j in range(ws):
-            if d[i, j] <= cfg.min_depth:
-                assert not bool(cloud.valid[i * ws + j])
-                continue
-            cands = []
-            for di in range(-r, r + 1):
-                for dj in range(-r, r + 1):
-                    a, b = i + di, j + dj
-                    if 0 <= a < hs and 0 <= b < ws and d[a, b] > cfg.min_depth and abs(d[a, b] - d[i, j]) <= cfg.depth_gate * d[i, j]:
-                        cands.append(P[a, b])
-            cands = np.array(cands)
-            dist = np.sum((cands - P[i, j]) ** 2, axis=1)
-            nb = cands[np.argsort(dist, kind="stable")[: cfg.k]]
-            C = np.cov(nb.T, bias=True)
-            lam, V = np.linalg.eigh(C)
-            if not bool(cloud.valid[i * ws + j]) or lam[1] < 1e-2 * lam[2]:
-                continue
-            want = V @ np.diag([max(lam[0] / lam[1], cfg.eps), 1.0, lam[2] / lam[1]]) @ V.T
-            got = np.asarray(gicp.sym_to_mat(cloud.covs[:, i * ws + j]))
-            np.testing.assert_allclose(got, want, rtol=5e-3, atol=5e-3 * lam[2] / lam[1])
-            np.testing.assert_allclose(np.asarray(cloud.points[:, i * ws + j]), P[i, j], rtol=1e-6)
-            checked += 1
-    assert checked > 0.8 * hs * ws - 20
+
+@pytest.mark.parametrize("k,window", [(15, 5), (23, 5)])
+def test_frame_clouds_at_median_and_measured_depths(k, window):
+    """With ``median_depth`` the tracked cloud sits at each pixel's 3x3 median depth and T's cloud
+    at the measured depths, each with its own nearest neighbours: both against numpy."""
+    cfg = TrackConfig(stride=2, k=k, window=window, depth_gate=0.1, eps=1e-3, median_gate=0.01, median_depth=True)
+    intr = make_intrinsics(60.0, 60.0, 23.5, 19.5, 48, 40)
+    depth = _bumpy_depth()
+    depth = np.where(depth > 0, depth + np.random.default_rng(0).normal(0.0, 1e-3, depth.shape), 0.0).astype(np.float32)
+    tracked, to_t = gicp.frame_clouds(cfg, jnp.asarray(depth), intr)
+    h, w = depth.shape
+    med = np.zeros((h // 2, w // 2), np.float32)
+    for i, y in enumerate(range(1, h, 2)):
+        for j, x in enumerate(range(1, w, 2)):
+            vals = depth[max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2]
+            med[i, j] = np.median(vals[vals > 0]) if depth[y, x] > 0 else 0.0
+    # The 1 mm noise passes the 1% gate but for the edges of the depth jump and the hole: drop those.
+    measured = depth[1::2, 1::2]
+    kept = np.abs(measured - med) <= 0.01 * measured
+    med, measured = np.where(kept, med, 0.0), np.where(kept, measured, 0.0)
+    _check_knn_covariances(cfg, tracked, med, med)
+    _check_knn_covariances(cfg, to_t, measured, measured)
 
 
 @pytest.mark.slow
