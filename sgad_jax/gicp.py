@@ -17,6 +17,7 @@ faster than batched ``einsum`` / ``eigh`` on ``(m, 3, 3)``.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -249,8 +250,9 @@ def frame_clouds(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
     :func:`_nearest`): a k-nearest-neighbour search restricted to the patch. With
     ``cfg.median_gate > 0``, pixels far from their 3x3 median are missing depth from the start
     (:func:`_median_consistent`), and with ``cfg.median_depth`` the tracked points sit at that
-    median while T receives them at their measured depths (tracked against T built from median
-    depths, long noisy sequences drifted: docs/method.md, "Depth outliers").
+    median while T receives them at their measured depths, with the tracked points' covariances
+    and normals (tracked against T built from median depths, long noisy sequences drifted; one
+    neighbour search for both, not one each: docs/method.md, "Depth outliers").
 
     Args:
         cfg: tracking config (stride R, k K_c, window, depth_gate, eps, min/max depth).
@@ -274,13 +276,21 @@ def frame_clouds(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
         if cfg.median_depth:  # nine measurements, not one: noise that passed the gate is mostly removed
             tracked = med
     cloud = _cloud(cfg, tracked, valid, u, v, intr)
-    return cloud, (cloud if tracked is d else _cloud(cfg, d, valid, u, v, intr))
+    if tracked is d:
+        return cloud, cloud
+    measured = _back_project(jnp.where(cloud.valid.reshape(d.shape), d, 0.0), u, v, intr)
+    return cloud, dataclasses.replace(cloud, points=jnp.stack(measured).reshape(3, -1))
+
+
+def _back_project(d, u, v, intr: Intrinsics):
+    """Camera-frame coordinates ``(x, y, z)`` of depths ``d`` at pixels ``(u, v)``."""
+    return d * (u - intr.cx) / intr.fx, d * (v - intr.cy) / intr.fy, d
 
 
 def _cloud(cfg: TrackConfig, d, valid, u, v, intr: Intrinsics) -> PointCloud:
     """Points of the strided depths ``d`` where ``valid``, with their window covariances."""
     d = jnp.where(valid, d, 0.0)
-    p = (d * (u - intr.cx) / intr.fx, d * (v - intr.cy) / intr.fy, d)
+    p = _back_project(d, u, v, intr)
 
     r = cfg.window // 2
     hs, ws = d.shape

@@ -141,8 +141,9 @@ def test_frame_points_match_brute_force_knn(k, window):
 
 @pytest.mark.parametrize("k,window", [(15, 5), (23, 5)])
 def test_frame_clouds_at_median_and_measured_depths(k, window):
-    """With ``median_depth`` the tracked cloud sits at each pixel's 3x3 median depth and T's cloud
-    at the measured depths, each with its own nearest neighbours: both against numpy."""
+    """With ``median_depth`` the tracked cloud sits at each pixel's 3x3 median depth, with its
+    nearest neighbours' covariances there; T's cloud is the same Gaussians at the measured depths:
+    both against numpy."""
     cfg = TrackConfig(stride=2, k=k, window=window, depth_gate=0.1, eps=1e-3, median_gate=0.01, median_depth=True)
     intr = make_intrinsics(60.0, 60.0, 23.5, 19.5, 48, 40)
     depth = _bumpy_depth()
@@ -159,7 +160,13 @@ def test_frame_clouds_at_median_and_measured_depths(k, window):
     kept = np.abs(measured - med) <= 0.01 * measured
     med, measured = np.where(kept, med, 0.0), np.where(kept, measured, 0.0)
     _check_knn_covariances(cfg, tracked, med, med)
-    _check_knn_covariances(cfg, to_t, measured, measured)
+    for field in ("covs", "normals", "valid"):
+        np.testing.assert_array_equal(np.asarray(getattr(to_t, field)), np.asarray(getattr(tracked, field)))
+    ok = np.asarray(to_t.valid)
+    assert ok.sum() > 0.8 * ok.size - 20
+    want = _points(measured, 1, 2).reshape(-1, 3)[ok]
+    np.testing.assert_allclose(np.asarray(to_t.points).T[ok], want, rtol=1e-6)
+    assert np.abs(want[:, 2] - med.reshape(-1)[ok]).max() > 5e-4  # the two clouds' depths differ
 
 
 @pytest.mark.slow
