@@ -283,7 +283,8 @@ def frame_clouds(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
 
 
 def _back_project(d, u, v, intr: Intrinsics):
-    """Camera-frame coordinates ``(x, y, z)`` of depths ``d`` at pixels ``(u, v)``."""
+    """Camera-frame coordinates ``(x, y, z)`` of depths ``d`` at pixels ``(u, v)``, as separate
+    arrays for the component-wise maths (:func:`sgad_jax.camera.backproject` stacks them last)."""
     return d * (u - intr.cx) / intr.fx, d * (v - intr.cy) / intr.fy, d
 
 
