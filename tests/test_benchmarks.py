@@ -53,3 +53,41 @@ def test_structured_light_simulation_against_its_error_model():
     right_of_box = ~seen[100:300, 400:410]
     assert right_of_box[:, :4].mean() > 0.95 and right_of_box[:, 4:].mean() < 0.02
     assert (~seen[100:300, 190:200]).mean() < 0.02  # left of it: nothing hidden
+    # Correlated noise (a sensor matching windows of pixels): the same per-pixel error, now shared
+    # with the neighbours (white noise blurred by sigma 2 px: a neighbour correlation of exp(-1/16)
+    # before the rounding, which lowers it).
+    out = sim.simulate(z, np.random.default_rng(2), correlation_px=2.0)
+    err = np.where(out > 0, out - 2.0, np.nan)
+    assert abs(np.sqrt(np.nanmean(err**2)) / expected - 1) < 0.1
+    a, b = err[:, :-1].ravel(), err[:, 1:].ravel()
+    both = np.isfinite(a) & np.isfinite(b)
+    assert np.corrcoef(a[both], b[both])[0, 1] > 0.6
+
+
+def test_structured_light_simulation_lens_distortion():
+    """``distort`` on a tilted plane: each pixel holds the plane's depth along the ray through its
+    undistorted position, worked out by hand (plane z = 2 + 0.5 X: z = 2 / (1 - 0.5 x_u)), with
+    x_d = x_u (1 + k1 r_u^2) inverted by bisection here, not by the script's fixed-point loop."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import sim_structured_light as sim
+
+    f, cx, cy, k1 = 300.0, 199.5, 149.5, -0.05
+    u, v = np.meshgrid(np.arange(400.0), np.arange(300.0))
+    plane = 2.0 / (1.0 - 0.5 * (u - cx) / f)  # the pinhole camera's image of the plane
+    out = sim.distort(plane, f, f, cx, cy, k1)
+    xd, yd = (u - cx) / f, (v - cy) / f
+    lo, hi = np.zeros_like(xd), np.ones_like(xd) * 2.0  # the undistorted radius over the distorted one
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        rd = mid * np.hypot(xd, yd) * (1 + k1 * (mid * np.hypot(xd, yd)) ** 2)
+        below = rd < np.hypot(xd, yd)
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    xu = xd * lo
+    expected = 2.0 / (1.0 - 0.5 * xu)
+    inside = out > 0
+    # nearest-pixel sampling: within the depth change of 0.75 pixel along x (dz/dx_u = z^2 / 4)
+    tol = 0.75 * expected**2 / 4 / f + 1e-5
+    assert np.all(np.abs(out - expected)[inside] < tol[inside])
+    # barrel (k1 < 0): the corners' rays lie outside the pinhole image, so only they are missing
+    assert inside[150, 200] and not inside[0, 0] and 0.9 < inside.mean() < 0.99
+    assert np.median(np.abs(out - plane)[inside] / tol[inside]) > 1  # it moved away from the pinhole image
