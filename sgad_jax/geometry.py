@@ -106,8 +106,9 @@ def occupied(geom: GeometrySet, p_w: Float[Array, "3 m"]) -> Bool[Array, " m"]:
 CHUNK = 1024
 
 
-def insert(geom: GeometrySet, cloud_w: PointCloud) -> tuple[GeometrySet, InsertInfo]:
+def insert(geom: GeometrySet, cloud_w: PointCloud, keyed_by: Float[Array, "3 m"] | None = None) -> tuple[GeometrySet, InsertInfo]:
     """Add the points of ``cloud_w`` (world frame) whose voxels are empty; one per voxel.
+    ``keyed_by``: the world points whose voxels decide that (default: ``cloud_w``'s own).
 
     Fixed shapes throughout, and nothing proportional to the capacity. The points in empty voxels
     are gathered in index order and inserted a chunk at a time (a ``while_loop``; none when there
@@ -121,7 +122,7 @@ def insert(geom: GeometrySet, cloud_w: PointCloud) -> tuple[GeometrySet, InsertI
     remaining points are dropped and counted in ``InsertInfo.overflow`` (once per chunk that meets
     the key).
     """
-    key, inside = pack(voxel_coords(geom, cloud_w.points))
+    key, inside = pack(voxel_coords(geom, cloud_w.points if keyed_by is None else keyed_by))
     todo = cloud_w.valid & inside & ~_lookup(geom, key)[1]
     m = key.shape[0]
     chunk = min(m, CHUNK)
@@ -194,16 +195,16 @@ def _place(geom: GeometrySet, key, new, cloud_w: PointCloud, index) -> tuple[Geo
     return out, n_new, jnp.sum(first).astype(jnp.int32)
 
 
-def fuse(geom: GeometrySet, cloud_w: PointCloud, cap: int) -> GeometrySet:
+def fuse(geom: GeometrySet, cloud_w: PointCloud, cap: int, keyed_by: Float[Array, "3 m"] | None = None) -> GeometrySet:
     """Average the points of ``cloud_w`` (world frame) whose voxels T already holds into those
     entries' positions, a running mean of the voxel's first ``cap`` observations: a noisy first
     observation does not fix the surface for good, and a settled entry does not follow the drift
-    of later frames. Shapes and normals stay the first ones'.
+    of later frames. Shapes and normals stay the first ones'. ``keyed_by`` as in :func:`insert`.
 
     Sparse: each point adds ``(p - old) / (w + n)`` to its entry (``w`` the entry's weight, ``n``
     the points of this frame in the voxel), which sums to the new mean; only the count is dense.
     """
-    key, inside = pack(voxel_coords(geom, cloud_w.points))
+    key, inside = pack(voxel_coords(geom, cloud_w.points if keyed_by is None else keyed_by))
     slot, hit = _lookup(geom, key)
     upd = cloud_w.valid & inside & hit & (geom.weights[slot] < cap)
     target = jnp.where(upd, slot, geom.capacity)

@@ -252,7 +252,10 @@ def frame_clouds(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
     (:func:`_median_consistent`), and with ``cfg.median_depth`` the tracked points sit at that
     median while T receives them at their measured depths, with the tracked points' covariances
     and normals (tracked against T built from median depths, long noisy sequences drifted; one
-    neighbour search for both, not one each: docs/method.md, "Depth outliers").
+    neighbour search for both, not one each: docs/method.md, "Depth outliers"). With
+    ``cfg.plane_points`` the tracked points are moved onto their window's plane, and T's cloud keeps
+    the measured points: T stores the tracked ones in the measured ones' voxels
+    (:func:`sgad_jax.slam.track_step`).
 
     Args:
         cfg: tracking config (stride R, k K_c, window, depth_gate, eps, min/max depth).
@@ -276,7 +279,7 @@ def frame_clouds(cfg: TrackConfig, depth: Float[Array, "h w"], intr: Intrinsics)
         if cfg.median_depth:  # nine measurements, not one: noise that passed the gate is mostly removed
             tracked = med
     cloud = _cloud(cfg, tracked, valid, u, v, intr)
-    if tracked is d:
+    if tracked is d and not cfg.plane_points:
         return cloud, cloud
     measured = _back_project(jnp.where(cloud.valid.reshape(d.shape), d, 0.0), u, v, intr)
     return cloud, dataclasses.replace(cloud, points=jnp.stack(measured).reshape(3, -1))
@@ -318,6 +321,9 @@ def _cloud(cfg: TrackConfig, d, valid, u, v, intr: Intrinsics) -> PointCloud:
     cov, cnt = _materialise((cov, cnt))
     cov_n, normal, ok = normalise_covariance(cov, cfg.eps)
     valid = valid & ok & (cnt >= min(cfg.k, 5))
+    if cfg.plane_points:  # onto the window's plane: the noise across the surface averaged over K_c points
+        off = sum(normal[c] * (p[c] - mean[c]) for c in range(3))
+        p = [jnp.where(valid, p[c] - off * normal[c], p[c]) for c in range(3)]
     eye = jnp.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])[:, None, None]
     return PointCloud(
         points=jnp.stack(p).reshape(3, -1),

@@ -212,8 +212,11 @@ def track_step(
     accepted = healthy | recovered
     # A failed frame's points never reach T: its pose is only a guess.
     cloud_w = dataclasses.replace(transform_cloud(T, cloud_t), valid=cloud_t.valid & accepted)
-    geom = geometry.fuse(state.geom, cloud_w, cfg.fuse_observations) if cfg.fuse_observations > 1 else state.geom
-    geom, ins = geometry.insert(geom, cloud_w)
+    keyed_by = None
+    if cfg.plane_points:  # the points on their planes, in the voxels the measured points fall in
+        keyed_by, cloud_w = cloud_w.points, dataclasses.replace(cloud_w, points=lie.transform_points(*lie.rotation_components(T), cloud.points))
+    geom = geometry.fuse(state.geom, cloud_w, cfg.fuse_observations, keyed_by) if cfg.fuse_observations > 1 else state.geom
+    geom, ins = geometry.insert(geom, cloud_w, keyed_by)
     moved = (dt > 0) & healthy
     velocity = jnp.where(moved, (state.T_prev.inverse() @ T).log() / jnp.where(moved, dt, 1.0), state.velocity)
     velocity = jnp.where(jnp.all(jnp.isfinite(velocity)), velocity, state.velocity)

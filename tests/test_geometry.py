@@ -198,3 +198,26 @@ def test_fuse_is_the_running_mean_of_each_voxels_observations():
     np.testing.assert_allclose(np.asarray(g.points[:, :c]), want, atol=1e-5)
     np.testing.assert_array_equal(np.asarray(g.weights[:c]), [len(obs[k]) for k in key(entries)])
     assert int(g.count) == c and (np.asarray(g.weights[c:]) == 0).all()
+
+
+def test_points_keyed_by_other_points():
+    """``keyed_by``: insert and fuse place each point of the cloud in the voxel of its key point, not
+    its own (T keeps plane-projected points in the voxels of the measured ones): against a host
+    grouping by the keys' voxels."""
+    rng = np.random.default_rng(2)
+    keys = [rng.uniform(0.0, 1.0, (3, 300)).astype(np.float32)]
+    keys.append(keys[0][:, rng.permutation(300)[:200]] + rng.normal(0, 0.01, (3, 200)).astype(np.float32))
+    shift = np.float32([[0.03], [-0.02], [0.04]])  # most stored points lie in another voxel than their key
+    geom, info = jax.jit(geometry.insert)(empty_geometry(4096, VOXEL), _cloud(keys[0] + shift), jnp.asarray(keys[0]))
+    g = jax.jit(geometry.fuse, static_argnums=2)(geom, _cloud(keys[1] + shift), 2, jnp.asarray(keys[1]))
+    obs = {}
+    for i, k in enumerate(np.floor(keys[0].T / VOXEL).astype(int)):
+        obs.setdefault(tuple(k), [keys[0][:, i] + shift[:, 0]])  # the first point of a voxel owns it
+    assert int(info.inserted) == len(obs) == int(geom.count)
+    for i, k in enumerate(np.floor(keys[1].T / VOXEL).astype(int)):  # each entry has one observation: all go in
+        if tuple(k) in obs:
+            obs[tuple(k)].append(keys[1][:, i] + shift[:, 0])
+    voxels = np.array(list(obs), np.float32).T
+    slot, hit = geometry._lookup(g, geometry.pack(geometry.voxel_coords(g, jnp.asarray((voxels + 0.5) * VOXEL)))[0])
+    assert np.asarray(hit).all()
+    np.testing.assert_allclose(np.asarray(g.points[:, np.asarray(slot)]), np.stack([np.mean(o, 0) for o in obs.values()], 1), atol=1e-5)

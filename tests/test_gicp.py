@@ -96,11 +96,26 @@ def _points(d, off, s):
     return np.stack([(uu - 23.5) / 60.0 * d, (vv - 19.5) / 60.0 * d, d], -1)
 
 
+def _knn(cfg, P, d_pick, i, j):
+    """Grid indices of point (i, j)'s k nearest window neighbours (itself included): 3-D distance
+    among the points ``P`` of the strided grid, stable sort, depth-jump gate on ``d_pick``."""
+    r, (hs, ws) = cfg.window // 2, d_pick.shape
+    cands = [
+        (a, b)
+        for di in range(-r, r + 1)
+        for dj in range(-r, r + 1)
+        for a, b in [(i + di, j + dj)]
+        if 0 <= a < hs and 0 <= b < ws and d_pick[a, b] > cfg.min_depth and abs(d_pick[a, b] - d_pick[i, j]) <= cfg.depth_gate * d_pick[i, j]
+    ]
+    dist = np.array([np.sum((P[a, b] - P[i, j]) ** 2) for a, b in cands])
+    return [cands[n] for n in np.argsort(dist, kind="stable")[: cfg.k]]
+
+
 def _check_knn_covariances(cfg, cloud, d_pick, d_cov):
     """Each point's covariance against numpy: its k nearest window neighbours picked on the depths
     ``d_pick`` (3-D distance, stable sort, depth-jump gate), the covariance of those neighbours'
     points at the depths ``d_cov``; points at ``d_cov``."""
-    off, s, r = cfg.stride // 2, cfg.stride, cfg.window // 2
+    off, s = cfg.stride // 2, cfg.stride
     P, Q = _points(d_pick, off, s), _points(d_cov, off, s)
     hs, ws = d_pick.shape
     checked = 0
@@ -109,15 +124,7 @@ def _check_knn_covariances(cfg, cloud, d_pick, d_cov):
             if d_pick[i, j] <= cfg.min_depth:
                 assert not bool(cloud.valid[i * ws + j])
                 continue
-            cands = [
-                (a, b)
-                for di in range(-r, r + 1)
-                for dj in range(-r, r + 1)
-                for a, b in [(i + di, j + dj)]
-                if 0 <= a < hs and 0 <= b < ws and d_pick[a, b] > cfg.min_depth and abs(d_pick[a, b] - d_pick[i, j]) <= cfg.depth_gate * d_pick[i, j]
-            ]
-            dist = np.array([np.sum((P[a, b] - P[i, j]) ** 2) for a, b in cands])
-            nb = np.array([Q[cands[n]] for n in np.argsort(dist, kind="stable")[: cfg.k]])
+            nb = np.array([Q[a, b] for a, b in _knn(cfg, P, d_pick, i, j)])
             lam, V = np.linalg.eigh(np.cov(nb.T, bias=True))
             if not bool(cloud.valid[i * ws + j]) or lam[1] < 1e-2 * lam[2]:
                 continue
@@ -167,6 +174,55 @@ def test_frame_clouds_at_median_and_measured_depths(k, window):
     want = _points(measured, 1, 2).reshape(-1, 3)[ok]
     np.testing.assert_allclose(np.asarray(to_t.points).T[ok], want, rtol=1e-6)
     assert np.abs(want[:, 2] - med.reshape(-1)[ok]).max() > 5e-4  # the two clouds' depths differ
+
+
+def test_plane_points_on_their_window_plane():
+    """With ``plane_points`` each point is its own moved along its normal onto the plane through
+    the mean of its K_c window neighbours (numpy), covariances and normals unchanged; T's cloud
+    keeps the measured points (they key the voxels)."""
+    base = TrackConfig(stride=2, k=15, window=5, median_gate=0.0)
+    cfg = TrackConfig(stride=2, k=15, window=5, median_gate=0.0, plane_points=True)
+    intr = make_intrinsics(60.0, 60.0, 23.5, 19.5, 48, 40)
+    depth = _bumpy_depth()
+    depth = np.where(depth > 0, depth + np.random.default_rng(1).normal(0.0, 3e-3, depth.shape), 0.0).astype(np.float32)
+    plain = gicp.frame_points(base, jnp.asarray(depth), intr)
+    tracked, to_t = gicp.frame_clouds(cfg, jnp.asarray(depth), intr)
+    for field in ("covs", "normals", "valid"):
+        np.testing.assert_array_equal(np.asarray(getattr(tracked, field)), np.asarray(getattr(plain, field)))
+    for field in ("covs", "normals", "valid"):
+        np.testing.assert_array_equal(np.asarray(getattr(to_t, field)), np.asarray(getattr(tracked, field)))
+    np.testing.assert_array_equal(np.asarray(to_t.points), np.asarray(plain.points))
+    d = depth[1::2, 1::2]
+    P = _points(d, 1, 2)
+    ok, n = np.asarray(plain.valid), np.asarray(plain.normals)
+    moved = 0.0
+    for i in range(d.shape[0]):
+        for j in range(d.shape[1]):
+            m = i * d.shape[1] + j
+            if not ok[m]:
+                continue
+            mean = np.mean([P[a, b] for a, b in _knn(cfg, P, d, i, j)], axis=0)
+            want = P[i, j] - n[:, m] * (n[:, m] @ (P[i, j] - mean))
+            np.testing.assert_allclose(np.asarray(tracked.points[:, m]), want, atol=2e-5)
+            moved = max(moved, float(np.linalg.norm(want - P[i, j])))
+    assert ok.sum() > 300 and moved > 3e-3  # the noise moved points by millimetres
+
+
+def test_plane_points_take_the_noise_out_of_a_plane():
+    """A tilted plane with N(0, 3 mm) on every depth pixel: the points on their window planes lie
+    several times closer to the true plane than the measured points T receives by default."""
+    h, w, f = 240, 320, 300.0
+    intr = make_intrinsics(f, f, (w - 1) / 2, (h - 1) / 2, w, h)
+    n = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])  # plane through (0, 0, 1)
+    v, u = np.mgrid[0:h, 0:w]
+    rays = np.stack([(u - (w - 1) / 2) / f, (v - (h - 1) / 2) / f, np.ones((h, w))])
+    depth = n[2] / np.tensordot(n, rays, 1) + np.random.default_rng(0).normal(0.0, 3e-3, (h, w))
+    rms = {}
+    for on in (False, True):
+        tracked, to_t = gicp.frame_clouds(TrackConfig(plane_points=on), jnp.asarray(depth, jnp.float32), intr)
+        ok = np.asarray(to_t.valid)
+        rms[on] = np.sqrt(np.mean((n @ np.asarray((tracked if on else to_t).points)[:, ok] - n[2]) ** 2))
+    assert rms[False] > 2e-3 and rms[True] < 0.3 * rms[False], rms
 
 
 @pytest.mark.slow
