@@ -8,6 +8,8 @@ rest at random, and is turned back into depth: about 8 mm RMS error at Replica's
 are linked, not copied. Two options bring in what a real camera adds: ``--correlation-px`` shares the
 disparity noise among neighbouring pixels (a sensor matches windows of pixels), ``--k1`` gives the
 depth camera a radial lens distortion that the dataset's pinhole intrinsics do not model.
+``--scale`` makes the room larger (its depth and the trajectory's translations times the factor)
+before the sensor sees it, so that more of it lies where the sensor is noisy.
 
 Usage::
 
@@ -75,7 +77,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--correlation-px", type=float, default=0.0, help="blur sigma of the disparity noise (0: independent pixels)")
     ap.add_argument("--k1", type=float, default=0.0, help="radial lens distortion of the depth camera, unmodelled by the intrinsics")
+    ap.add_argument("--scale", type=float, default=1.0, help="the scene's size factor (depth and camera translations)")
     args = ap.parse_args()
+    if not args.scale > 0:
+        ap.error(f"--scale: a positive factor, got {args.scale}")
     src, dst = pathlib.Path(args.src).resolve(), pathlib.Path(args.dst)
     results = src / args.sequence / "results"
     if not results.is_dir() or not (src / "cam_params.json").is_file():
@@ -83,7 +88,9 @@ def main() -> None:
     shutil.rmtree(dst, ignore_errors=True)
     (dst / args.sequence / "results").mkdir(parents=True)
     shutil.copy(src / "cam_params.json", dst)
-    shutil.copy(src / args.sequence / "traj.txt", dst / args.sequence)
+    traj = np.loadtxt(src / args.sequence / "traj.txt", ndmin=2)
+    traj[:, [3, 7, 11]] *= args.scale  # row-major 4x4 camera-to-world: the translation column
+    np.savetxt(dst / args.sequence / "traj.txt", traj)
     rng = np.random.default_rng(args.seed)
     cam = json.loads((src / "cam_params.json").read_text())["camera"]
     for path in sorted(results.iterdir()):
@@ -91,7 +98,7 @@ def main() -> None:
         if not path.name.startswith("depth"):
             out.symlink_to(path)
             continue
-        z = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64) / REPLICA_SCALE
+        z = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64) / REPLICA_SCALE * args.scale
         if args.k1:
             z = distort(z, cam["fx"], cam["fy"], cam["cx"], cam["cy"], args.k1)
         cv2.imwrite(str(out), np.clip(np.round(simulate(z, rng, args.correlation_px) * REPLICA_SCALE), 0, 65535).astype(np.uint16))

@@ -91,3 +91,26 @@ def test_structured_light_simulation_lens_distortion():
     # barrel (k1 < 0): the corners' rays lie outside the pinhole image, so only they are missing
     assert inside[150, 200] and not inside[0, 0] and 0.9 < inside.mean() < 0.99
     assert np.median(np.abs(out - plane)[inside] / tol[inside]) > 1  # it moved away from the pinhole image
+
+
+def test_structured_light_simulation_scaled_room(tmp_path):
+    """``--scale 2``: the trajectory's translations doubled and its rotations kept, exactly; the
+    sensor sees a wall twice as far (median depth within the rounding's bias of 2x)."""
+    src = tmp_path / "replica"
+    (src / "rendered_100" / "results").mkdir(parents=True)
+    (src / "cam_params.json").write_text(json.dumps({"camera": {"w": 64, "h": 48, "fx": 60.0, "fy": 60.0, "cx": 31.5, "cy": 23.5, "scale": 6553.5}}))
+    cv2 = pytest.importorskip("cv2")
+    cv2.imwrite(str(src / "rendered_100" / "results" / "depth000000.png"), np.full((48, 64), round(1.5 * 6553.5), np.uint16))
+    cv2.imwrite(str(src / "rendered_100" / "results" / "frame000000.jpg"), np.zeros((48, 64, 3), np.uint8))
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    T[:3, 3] = [0.25, -0.5, 1.0]
+    np.savetxt(src / "rendered_100" / "traj.txt", T.reshape(1, 16))
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "sim_structured_light.py"), str(src), str(tmp_path / "big"), "--scale", "2"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    got = np.loadtxt(tmp_path / "big" / "rendered_100" / "traj.txt").reshape(4, 4)
+    np.testing.assert_array_equal(got[:3, :3], T[:3, :3])
+    np.testing.assert_array_equal(got[:3, 3], [0.5, -1.0, 2.0])
+    z = cv2.imread(str(tmp_path / "big" / "rendered_100" / "results" / "depth000000.png"), cv2.IMREAD_UNCHANGED) / 6553.5
+    assert abs(np.median(z[z > 0]) / 3.0 - 1) < 0.01
