@@ -123,10 +123,10 @@ class TrackConfig:
     # pixel's (false: their own, as the paper); T still receives the measured depths (docs/method.md).
     median_depth: bool = True
     fuse_observations: int = 4  # each entry of T: the mean of its voxel's first N observations (1: the first, as the paper)
-    # Each point moved along its normal onto the plane of its K_c window neighbours, and T takes the
-    # tracked points: on noise-limited structured-light depth 5x more accurate, on 7-Scenes' long
-    # windows +-12% (docs/method.md, "T's points on their window's plane"). Best with
-    # depth_weight_power = 2; off by default until every figure of RESULTS.md is measured with it.
+    # Each point moved along its normal onto the plane of its K_c window neighbours, and T stores
+    # those in the voxels of the measured points: on simulated structured-light depth about 6x more
+    # accurate, on 7-Scenes' long windows -8% to +37% (docs/method.md, "T's points on their window's
+    # plane"). Best with depth_weight_power = 2; off until RESULTS.md is measured with it.
     plane_points: bool = False
 
     def __post_init__(self):
