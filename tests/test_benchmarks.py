@@ -96,10 +96,11 @@ def test_structured_light_simulation_lens_distortion():
 def test_structured_light_simulation_scaled_room(tmp_path):
     """``--scale 2``: the trajectory's translations doubled and its rotations kept, exactly; the
     sensor sees a wall twice as far (median depth within the rounding's bias of 2x)."""
+    import cv2
+
     src = tmp_path / "replica"
     (src / "rendered_100" / "results").mkdir(parents=True)
     (src / "cam_params.json").write_text(json.dumps({"camera": {"w": 64, "h": 48, "fx": 60.0, "fy": 60.0, "cx": 31.5, "cy": 23.5, "scale": 6553.5}}))
-    cv2 = pytest.importorskip("cv2")
     cv2.imwrite(str(src / "rendered_100" / "results" / "depth000000.png"), np.full((48, 64), round(1.5 * 6553.5), np.uint16))
     cv2.imwrite(str(src / "rendered_100" / "results" / "frame000000.jpg"), np.zeros((48, 64, 3), np.uint8))
     T = np.eye(4)
