@@ -3,8 +3,9 @@
 Each noise level and seed reads the sequence with ``data.noise_share`` / ``data.noise_seed`` set
 (a share of each depth image's valid pixels plus N(0, ``data.noise_sigma``)), runs the host loop's
 tracking step (``system.compile_step``, compiled once per config) over it with the repeated-depth
-and timestamp rules of ``sgad-jax run``, and prints one JSON line per run: ``ours_ate_cm`` and,
-with ``--peer``, ``small_gicp_ate_cm`` (VGICP as in ``bench_track.py``).
+and timestamp rules of ``sgad-jax run``, and prints one JSON line per run: ``ours_ate_cm``, the
+frames judged failed (``tracking_failures``, as a run's ``metrics.json`` lists them) and, with
+``--peer``, ``small_gicp_ate_cm`` (VGICP as in ``bench_track.py``).
 
 Usage::
 
@@ -57,16 +58,17 @@ def main() -> None:
             if (tcfg, intr) not in steps:
                 steps[tcfg, intr] = system.compile_step(tcfg, slam.init_state(tcfg, T0), jnp.asarray(depths[0]), intr, dts[0])
             step = steps[tcfg, intr]
-            state, poses = slam.init_state(tcfg, T0), []
+            state, poses, failures = slam.init_state(tcfg, T0), [], 0
             for depth, dt, same in zip(depths, dts, repeated):
                 if same:
                     poses.append(poses[-1])
                     continue
-                state, _, pose, _, _ = step(state, depth, intr, dt, None)
+                state, _, pose, info, _ = step(state, depth, intr, dt, None)
                 poses.append(np.asarray(pose))
+                failures += int(info.failure) != 0
             score = lambda p: 100 * ate(lie.interpolate(p, depth_stamps, frame_stamps), ds.gt_poses)["rmse_m"]  # noqa: E731
             out = {"data": ds.name, "frames": len(depths), "start": args.start, "stride": args.stride,
-                   "noise_share": level, "noise_sigma": cfg.data.noise_sigma, "seed": seed, "ours_ate_cm": score(np.stack(poses))}
+                   "noise_share": level, "noise_sigma": cfg.data.noise_sigma, "seed": seed, "ours_ate_cm": score(np.stack(poses)), "tracking_failures": failures}
             if args.peer:
                 peer, _ = _small_gicp_track(depths, repeated, intr, T0_matrix, tcfg.stride, tcfg.k, 0.05, 0.1, 2)
                 out["small_gicp_ate_cm"] = score(peer)

@@ -124,9 +124,9 @@ class TrackConfig:
     median_depth: bool = True
     fuse_observations: int = 4  # each entry of T: the mean of its voxel's first N observations (1: the first, as the paper)
     # Each point moved along its normal onto the plane of its K_c window neighbours, and T stores
-    # those in the voxels of the measured points: on simulated structured-light depth about 6x more
-    # accurate, on 7-Scenes' long windows -8% to +37% (docs/method.md, "T's points on their window's
-    # plane"). Best with depth_weight_power = 2; off until RESULTS.md is measured with it.
+    # those in the voxels of the measured points: takes a noisy sensor's noise out of T (on in the
+    # real-sensor presets, with depth_weight_power = 2; off for exact depth, where it only flattens
+    # curved surfaces: docs/method.md, "T's points on their window's plane").
     plane_points: bool = False
 
     def __post_init__(self):
