@@ -1,4 +1,4 @@
-"""The tracking benchmark runs end to end and prints its JSON (it had silently broken once); the
+"""The tracking and noise benchmarks run end to end and print their JSON (the first had silently broken once); the
 structured-light simulation follows its error model."""
 
 import json
