@@ -1,5 +1,5 @@
-"""The tracking and noise benchmarks run end to end and print their JSON (the first had silently broken once); the
-structured-light simulation follows its error model."""
+"""The tracking, noise and parallel-mapping benchmarks run end to end and print their JSON (the
+first and the last had silently broken once); the structured-light simulation follows its error model."""
 
 import json
 import pathlib
@@ -131,3 +131,18 @@ def test_bench_noise_counts_tracking_failures():
     assert out["frames"] == 10 and out["noise_share"] == 0.0
     assert out["tracking_failures"] == 1
     assert out["ours_ate_cm"] < 0.5
+
+
+@pytest.mark.slow
+def test_bench_parallel_maps_on_one_and_two_devices():
+    """bench_parallel drives BatchMapper with the arguments of slam.map_step (it once fell behind
+    a change of that signature) and times each device count in a process with that many devices."""
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_parallel.py"), "--data", "", "--devices", "1,2",
+         "--frames", "2", "--iterations", "2", "--downscale", "4"],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["data"] == "synthetic" and out["frames"] == 2
+    assert out["fps_1"] > 0 and out["fps_2"] > 0 and "fps_4" not in out
