@@ -52,7 +52,7 @@ def main() -> None:
             noise = [f"data.noise_share={level}", f"data.noise_seed={seed}", f"data.stride={args.stride}"]
             cfg = resolve_config(args.config, args.data or None, start=args.start, max_frames=args.max_frames, overrides=args.overrides + noise)
             ds, depths, repeated, depth_stamps, frame_stamps, dts = read_sequence(cfg)
-            tcfg, intr = cfg.track, ds.intrinsics
+            tcfg, intr = cfg.tracking(), ds.intrinsics
             T0 = system.initial_pose(ds)
             T0_matrix = np.asarray(T0.as_matrix(), np.float64)  # before the state's buffers are donated
             if (tcfg, intr) not in steps:

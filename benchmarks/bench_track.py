@@ -167,7 +167,7 @@ def main() -> None:
     ds, depths, repeated, depth_stamps, frame_stamps, dts = read_sequence(cfg)
     gt = ds.gt_poses
     intr = ds.intrinsics
-    tcfg = cfg.track
+    tcfg = cfg.tracking()
 
     # Ours: compile once; then both trackers run the whole sequence in turn, `--rounds` times, so
     # that each round's pair of medians is measured within seconds of each other (a shared

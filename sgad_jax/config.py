@@ -36,7 +36,7 @@ class DataConfig:
     start: int = 0
     stride: int = 1
     max_frames: int = 0  # 0: all
-    downscale: int = 1  # integer factor: colour by area averaging, depth by taking every n-th pixel
+    downscale: int = 1  # integer factor: colour by area averaging, depth by the block's mean on one surface
     intrinsics: tuple[float, ...] = ()  # (fx, fy, cx, cy) at full resolution; empty: from the dataset
     depth_scale: float = 0.0  # raw units per metre; 0: the dataset's convention
     depth_trunc: float = 0.0  # metres; depth beyond it is treated as missing; 0: keep all
@@ -62,7 +62,7 @@ class DataConfig:
 class TrackConfig:
     """Geometry branch: GICP of every R-th pixel against the global geometry set T."""
 
-    stride: int = 5  # R: take every R-th pixel of the depth image (paper: 10 Replica/ScanNet++, 5 TUM/ScanNet)
+    stride: int = 5  # R: take every R-th pixel of the full-resolution depth image (paper: 10 Replica/ScanNet++, 5 TUM/ScanNet); SLAMConfig.tracking divides it by data.downscale
     k: int = 23  # K_c: neighbours for each point's covariance (paper: 10 Replica, 23 TUM, 15 ScanNet)
     window: int = 5  # the K_c neighbours are the nearest in 3D among a window x window patch of the strided grid
     depth_gate: float = 0.1  # a neighbour farther than depth_gate * depth (along z) is another surface
@@ -258,6 +258,11 @@ class SLAMConfig:
     export: ExportConfig = ExportConfig()
     mesh: MeshConfig = MeshConfig()
     seed: int = 0
+
+    def tracking(self) -> TrackConfig:
+        """The tracking settings for frames read at ``data.downscale``: ``track.stride`` counts
+        full-resolution pixels, so a downscaled frame keeps about as many points (docs/method.md)."""
+        return dataclasses.replace(self.track, stride=max(1, self.track.stride // self.data.downscale))
 
 
 class ConfigError(ValueError):

@@ -113,6 +113,7 @@ class SLAM:
         if holdout_every < 0:
             raise ConfigError(f"--holdout-every must be >= 0, got {holdout_every}")
         self.cfg, self.intr = cfg, intr
+        self.track_cfg = cfg.tracking()
         self._step_intr = jax.device_put(intr)  # once: host scalars would be copied in at every step
         self.holdout_every, self.source = holdout_every, source
         self.holdout: list[int] = []  # run indices of the held-out frames
@@ -121,8 +122,8 @@ class SLAM:
         self.dropped = {"overflow": 0, "out_of_range": 0}  # points T could not take (InsertInfo)
         self.mapper = None if track_only else Mapper(cfg, intr, None if out_dir is None else pathlib.Path(out_dir), save_renders, mesh, progress=progress)
         # The whole state carried from frame to frame, one pytree (a checkpoint saves it as is).
-        self.state = slam.RunState(slam.init_state(cfg.track, initial_pose), None if self.mapper is None else self.mapper.empty_recent())
-        self.pager = paging.Pager(cfg.track, np.asarray(self.state.track.geom.origin))
+        self.state = slam.RunState(slam.init_state(self.track_cfg, initial_pose), None if self.mapper is None else self.mapper.empty_recent())
+        self.pager = paging.Pager(self.track_cfg, np.asarray(self.state.track.geom.origin))
         render_init = self.mapper is not None and cfg.map.render_init
         self._predict = jax.jit(slam.predict, static_argnums=0) if render_init else None
         self._step = None
@@ -163,7 +164,7 @@ class SLAM:
         """
         index = len(self.poses)
         frame = None if self.mapper is None else host_frame(sample, fill=self.maps(index))
-        if self.cfg.track.hold_repeated_depth and repeats(sample.depth, self._last_depth):
+        if self.track_cfg.hold_repeated_depth and repeats(sample.depth, self._last_depth):
             pose = self.poses[-1]
         else:
             pose = self._track(sample, frame)
@@ -206,10 +207,10 @@ class SLAM:
         dt = np.float32(sample.depth_timestamp - self.depth_stamps[-1] if self.depth_stamps else 0.0)
         guess = None
         if self._predict is not None:
-            guess = self.mapper.refine_guess(self.state.recent, frame, self._predict(self.cfg.track, self.state.track, dt))
+            guess = self.mapper.refine_guess(self.state.recent, frame, self._predict(self.track_cfg, self.state.track, dt))
         if self._step is None:
             t0 = time.perf_counter()
-            self._step = compile_step(self.cfg.track, self.state.track, depth, self._step_intr, dt, guess)
+            self._step = compile_step(self.track_cfg, self.state.track, depth, self._step_intr, dt, guess)
             self.compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         state, _, pose, info, ins = self._step(self.state.track, depth, self._step_intr, dt, guess)
@@ -219,7 +220,7 @@ class SLAM:
         self.times.append(time.perf_counter() - t0)
         self.iters.append(int(info.iterations))
         if int(info.failure):
-            self.failures.append({"frame": len(self.poses), "reason": failure_reason(self.cfg.track, info), "recovered": bool(info.recovered)})
+            self.failures.append({"frame": len(self.poses), "reason": failure_reason(self.track_cfg, info), "recovered": bool(info.recovered)})
         self.dropped["overflow"] += int(ins.overflow)
         self.dropped["out_of_range"] += int(ins.out_of_range)
         if self.pager.due(state.geom, pose[:3, 3]):

@@ -433,3 +433,16 @@ def test_median_gate_tracks_noisy_depth_closer_to_the_true_pose():
     assert gated < 1.2e-3 and plain > 3 * gated, (gated, plain)
     assert all(err[0.01, s] < err[0.0, s] for s in range(3))
     assert abs(err[0.01, "clean"] - err[0.0, "clean"]) < 2e-4 and err[0.01, "clean"] < 1e-3
+
+
+def test_downscaled_frames_are_tracked_with_as_many_points():
+    """track.stride counts full-resolution pixels: a frame read at data.downscale=2 keeps about as
+    many tracked points as at full resolution (at the raw stride it kept a quarter, and 7-Scenes'
+    400 frames at 320x240 tracked to 4.4 cm against 2.5 cm at 640x480)."""
+    counts = {}
+    for d in (1, 2):
+        cfg = resolve_config(None, None, overrides=[f"data.downscale={d}", "data.synthetic.frames=1"])
+        ds = SyntheticDataset(cfg.data)
+        counts[d] = int(gicp.frame_points(cfg.tracking(), jnp.asarray(ds[0].depth), ds.intrinsics).valid.sum())
+    assert counts[1] > 1000
+    assert 0.8 < counts[2] / counts[1] < 2.0, counts
