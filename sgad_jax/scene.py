@@ -173,7 +173,8 @@ class Scene:
     def add(self, index: int, pose: np.ndarray, depth: np.ndarray, valid: np.ndarray) -> None:
         """Index a mapped frame (camera-to-world ``pose``, its measured depth)."""
         self.poses[index] = np.asarray(pose, np.float64)
-        self.points[index] = footprint(np.asarray(depth), np.asarray(valid), self.poses[index], self.intr)
+        # float32: of the host memory that grows with the run, this index is most (9 KB a frame)
+        self.points[index] = footprint(np.asarray(depth), np.asarray(valid), self.poses[index], self.intr).astype(np.float32)
 
     def frames_for(self, view_pose: np.ndarray) -> list[int]:
         """The mapped frames that render the view (:func:`select_frames`), in priority order

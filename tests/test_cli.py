@@ -151,6 +151,30 @@ def test_unwritable_output_folder_fails_before_any_work(tmp_path, capsys):
     assert len(err) == 1 and str(blocker / "out") in err[0] and "cannot be written" in err[0]
 
 
+FREED_IN_THE_HEAP = """
+import numpy as np
+from sgad_jax.pipeline import current_rss_mb, release_freed_memory
+big = np.ones(9 * 2**20 // 8); del big  # freed from its own mapping: glibc's mmap threshold rises past it
+base = current_rss_mb()
+blocks = [np.ones(2**19) for _ in range(20)]  # 4 MB each, now served from the heap
+keep = blocks[-1]; del blocks  # the last block pins the heap's top, so free() cannot shrink it
+freed = current_rss_mb()
+release_freed_memory()
+print(base, freed, current_rss_mb())
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="needs /proc for the resident size")
+def test_memory_freed_in_the_heap_goes_back_to_the_system():
+    """What let a long run's resident memory creep up without a leak: blocks freed inside glibc's
+    heap stay resident until ``release_freed_memory`` (which the run calls every RSS_EVERY frames)."""
+    proc = subprocess.run([sys.executable, "-c", FREED_IN_THE_HEAP], capture_output=True, text=True, check=True)
+    base, freed, after = map(float, proc.stdout.split())
+    if freed - base < 50:
+        pytest.skip(f"this C library returned the freed blocks itself ({freed - base:.0f} MB kept)")
+    assert after - base < 15, (base, freed, after)
+
+
 @pytest.mark.slow
 def test_full_disk_mid_run_is_one_line_and_keeps_the_trajectory(tmp_path, capsys, monkeypatch):
     """The output disk fills up while a mapping run writes its frames' Gaussians (at the
