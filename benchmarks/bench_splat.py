@@ -63,7 +63,7 @@ def keep_freed_memory() -> bool:
     XLA:CPU allocates a call's scratch afresh, and glibc maps such blocks from the system and
     unmaps them when freed, so each call touches its scratch as new pages. Keeping them speeds up
     the neighbour path's gradient, but slows ``map_frame`` and tracking (one arena for all
-    threads), so ``sgad-jax run`` leaves malloc as it is (docs/method.md).
+    threads), so ``sgad-jax run`` keeps malloc's settings (docs/method.md).
     """
     import ctypes
     import ctypes.util
