@@ -218,6 +218,9 @@ class SceneConfig:
     # reached only the front-most Gaussian, and pushing it back ratcheted whole surfaces backwards
     # (docs/method.md); mapping already found no held-out gain in learned offsets.
     finetune_offsets: bool = False
+    # Host memory for the refinement's Gaussians and Adam moments (three copies of the map); the
+    # rest waits in a temporary folder (a 640x480 frame takes 26 MB)
+    finetune_budget_mb: float = 4096.0
 
     def __post_init__(self):
         if self.composite not in ("priority", "depth"):

@@ -184,14 +184,25 @@ class Mapper:
         """The merged-map refinement: ``iterations`` Adam steps, each on a random mapped frame's
         view rendered from its ``scene.frames`` best-covering frames, all of whose Gaussians move;
         fewer when ``stop()`` turns true (a Ctrl-C). Every mapped frame's Gaussians and Adam
-        moments are held in host memory meanwhile; the refined Gaussians replace the stored ones.
+        moments are held in host memory up to ``scene.finetune_budget_mb``, the rest in a temporary
+        folder meanwhile; the refined Gaussians replace the stored ones.
         Returns the steps taken, the seconds they took and the mean loss of the first and last 50.
         (Call with the queue mapped.)"""
         mapped = sorted(self.scene.poses)
         if not mapped or iterations <= 0:
             return {}
-        params = {i: jax.tree.map(np.asarray, self.store.get(i)) for i in mapped}
-        states = {i: jax.tree.map(np.asarray, scene.adam_init(params[i])) for i in mapped}
+        # Each frame's Gaussians and Adam moments, in host memory up to scene.finetune_budget_mb
+        # and beyond it in a temporary folder: a long run's would not fit (three copies of its map).
+        params, mu, nu = (GaussianStore(None, self.cfg.scene.finetune_budget_mb / 3) for _ in range(3))
+        count: dict[int, np.ndarray] = {}  # Adam's step count of the frames refined so far
+        for i in mapped:
+            params.put(i, self.store.get(i))
+
+        def state(i: int) -> scene.AdamState:
+            if i not in count:
+                return jax.tree.map(np.asarray, scene.adam_init(params.get(i)))
+            return scene.AdamState(mu=mu.get(i), nu=nu.get(i), count=count[i])
+
         frames = functools.lru_cache(maxsize=64)(lambda i: host_frame(source(i), fill=False))  # training views, read again
         rng = np.random.default_rng(seed)
         chosen_of = {i: self.scene.frames_for(poses[i]) for i in mapped}
@@ -201,20 +212,24 @@ class Mapper:
                 break
             view = mapped[rng.integers(len(mapped))]
             chosen = chosen_of[view]
-            gs, ps, present = self.scene.stack(chosen, params.__getitem__)
-            st, _, _ = self.scene.stack(chosen, states.__getitem__)
+            gs, ps, present = self.scene.stack(chosen, params.get)
+            st, _, _ = self.scene.stack(chosen, state)
             f = frames(view)
             gs, st, loss = scene.finetune_step(
                 self.cfg.map, gs, st, ps, present, f.rgb, f.depth, f.valid, _pose(poses[view]), self.intr,
                 composite=self.cfg.scene.composite, layers=self.cfg.scene.layers, lr_scale=self.cfg.scene.finetune_lr_scale, offsets=self.cfg.scene.finetune_offsets,
             )
             gs, st = jax.tree.map(np.asarray, (gs, st))
-            for j, i in enumerate(chosen):
-                params[i] = jax.tree.map(lambda x: x[j], gs)
-                states[i] = jax.tree.map(lambda x: x[j], st)
+            for j, i in enumerate(chosen):  # copies: a slice would keep the whole stack alive
+                params.put(i, jax.tree.map(lambda x: x[j].copy(), gs))
+                mu.put(i, jax.tree.map(lambda x: x[j].copy(), st.mu))
+                nu.put(i, jax.tree.map(lambda x: x[j].copy(), st.nu))
+                count[i] = st.count[j]
             losses.append(float(loss))
         for i in mapped:
-            self.store.put(i, params[i], self.scene.poses[i])
+            self.store.put(i, params.get(i), self.scene.poses[i])
+        for store in (params, mu, nu):
+            store.close()
         if not self.store.temporary:
             self.store.flush()  # the files on disk are the refined Gaussians
         first, last = (float(np.mean(part)) if losses else None for part in (losses[:50], losses[-50:]))

@@ -279,6 +279,15 @@ def test_held_out_views_end_to_end(tmp_path, capsys):
     again = evaluate_run(out, rerender=True, write=False)
     assert again["novel_psnr"] == pytest.approx(m["nvs_psnr"], abs=1e-3)
     assert evaluate_run(out, write=False)["novel_psnr"] == pytest.approx(m["nvs_psnr"], abs=0.1)
+    # the refinement with room for one frame in memory (the rest in its temporary folder) refines
+    # the same Gaussians as with all in memory
+    spilled = tmp_path / "spilled"
+    assert main([*args[:3], str(spilled), *args[4:], "--set", "scene.finetune_budget_mb=0.05"]) == 0
+    assert json.loads((spilled / "metrics.json").read_text())["nvs_psnr"] == m["nvs_psnr"]
+    for name in stored:
+        with np.load(out / "gaussians" / name) as a, np.load(spilled / "gaussians" / name) as b:
+            for key in a.files:
+                np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name} {key}")
 
 
 @pytest.mark.slow
