@@ -279,8 +279,8 @@ def test_held_out_views_end_to_end(tmp_path, capsys):
     again = evaluate_run(out, rerender=True, write=False)
     assert again["novel_psnr"] == pytest.approx(m["nvs_psnr"], abs=1e-3)
     assert evaluate_run(out, write=False)["novel_psnr"] == pytest.approx(m["nvs_psnr"], abs=0.1)
-    # the refinement with room for one frame in memory (the rest in its temporary folder) refines
-    # the same Gaussians as with all in memory
+    # with no room in memory (every frame's Gaussians and moments in its temporary folder) the
+    # refinement gives the same Gaussians as with all of them in memory
     spilled = tmp_path / "spilled"
     assert main([*args[:3], str(spilled), *args[4:], "--set", "scene.finetune_budget_mb=0.05"]) == 0
     assert json.loads((spilled / "metrics.json").read_text())["nvs_psnr"] == m["nvs_psnr"]
