@@ -183,24 +183,26 @@ class Mapper:
     def finetune(self, iterations: int, poses: np.ndarray, source, seed: int, stop=None) -> dict:
         """The merged-map refinement: ``iterations`` Adam steps, each on a random mapped frame's
         view rendered from its ``scene.frames`` best-covering frames, all of whose Gaussians move;
-        fewer when ``stop()`` turns true (a Ctrl-C). Every mapped frame's Gaussians and Adam
-        moments are held in host memory up to ``scene.finetune_budget_mb``, the rest in a temporary
-        folder meanwhile; the refined Gaussians replace the stored ones.
+        fewer when ``stop()`` turns true (a Ctrl-C). The refined frames' Gaussians and Adam moments
+        are held in host memory up to ``scene.finetune_budget_mb``, the rest in a temporary folder
+        meanwhile; the refined Gaussians then replace the stored ones.
         Returns the steps taken, the seconds they took and the mean loss of the first and last 50.
         (Call with the queue mapped.)"""
         mapped = sorted(self.scene.poses)
         if not mapped or iterations <= 0:
             return {}
-        # Each frame's Gaussians and Adam moments, in host memory up to scene.finetune_budget_mb
-        # and beyond it in a temporary folder: a long run's would not fit (three copies of its map).
+        # The refined frames' Gaussians and Adam moments (the others are read from the store), in
+        # host memory up to scene.finetune_budget_mb and beyond it in a temporary folder: a long
+        # run's would not fit (three copies of its map).
         params, mu, nu = (GaussianStore(None, self.cfg.scene.finetune_budget_mb / 3) for _ in range(3))
-        count: dict[int, np.ndarray] = {}  # Adam's step count of the frames refined so far
-        for i in mapped:
-            params.put(i, self.store.get(i))
+        count: dict[int, np.ndarray] = {}  # Adam's step count of each frame refined so far
+
+        def gaussians(i: int) -> PixelGaussians:
+            return params.get(i) if i in count else self.store.get(i)
 
         def state(i: int) -> scene.AdamState:
             if i not in count:
-                return jax.tree.map(np.asarray, scene.adam_init(params.get(i)))
+                return jax.tree.map(np.asarray, scene.adam_init(self.store.get(i)))
             return scene.AdamState(mu=mu.get(i), nu=nu.get(i), count=count[i])
 
         frames = functools.lru_cache(maxsize=64)(lambda i: host_frame(source(i), fill=False))  # training views, read again
@@ -212,7 +214,7 @@ class Mapper:
                 break
             view = mapped[rng.integers(len(mapped))]
             chosen = chosen_of[view]
-            gs, ps, present = self.scene.stack(chosen, params.get)
+            gs, ps, present = self.scene.stack(chosen, gaussians)
             st, _, _ = self.scene.stack(chosen, state)
             f = frames(view)
             gs, st, loss = scene.finetune_step(
@@ -226,7 +228,7 @@ class Mapper:
                 nu.put(i, jax.tree.map(lambda x: x[j].copy(), st.nu))
                 count[i] = st.count[j]
             losses.append(float(loss))
-        for i in mapped:
+        for i in count:  # the frames no step chose keep their stored Gaussians
             self.store.put(i, params.get(i), self.scene.poses[i])
         for store in (params, mu, nu):
             store.close()
