@@ -294,7 +294,10 @@ def run(
         if len(system) > start:
             run_metrics["s_per_input_frame"] = (time.perf_counter() - t_run - compiled) / (len(system) - start)
         if not stopped:
-            run_metrics.update(system.judge_scene(finetune, stop=lambda: bool(requests)))
+            try:
+                run_metrics.update(system.judge_scene(finetune, stop=lambda: bool(requests)))
+            except DatasetError as err:  # e.g. the disk filled up under the refinement's spilled state
+                stopped = str(err)
             done = run_metrics.get("finetune_iterations", finetune)
             if requests and done < finetune:  # the refinement was cut short (its views scored as it was)
                 interrupted = requests[0]

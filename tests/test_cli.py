@@ -203,6 +203,36 @@ def test_full_disk_mid_run_is_one_line_and_keeps_the_trajectory(tmp_path, capsys
     assert len(stamps) == m["frames"] == 4 and "No space left on device" in m["stopped"]
 
 
+@pytest.mark.slow
+def test_full_disk_in_the_refinement_is_one_line_and_keeps_the_trajectory(tmp_path, capsys, monkeypatch):
+    """The disk fills up under the refinement's spilled Gaussians (its temporary folder): one line
+    naming the file, exit status 2, and the run's trajectory and metrics still written."""
+    from sgad_jax.io import store
+
+    real = store.atomic_write
+
+    def atomic_write(path, write):
+        if "sgad_gaussians_" in str(path):  # a temporary store's file (the run's own are under --out)
+
+            def write(f):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        return real(path, write)
+
+    monkeypatch.setattr(store, "atomic_write", atomic_write)
+    out = tmp_path / "run"
+    args = ["run", "--quiet", "--out", str(out), "--checkpoint-every", "0", "--holdout-every", "4", "--finetune", "3"]
+    for kv in ("data.synthetic.width=80", "data.synthetic.height=60", "data.synthetic.frames=9", "map.iterations=3", "scene.frames=3", "scene.finetune_budget_mb=0.05"):
+        args += ["--set", kv]
+    code, _, err = _run(args, capsys)
+    assert code == 2
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "cannot write (No space left on device)" in lines[0] and "Traceback" not in err
+    stamps, _ = read_tum_trajectory(out / "trajectory.txt")
+    m = json.loads((out / "metrics.json").read_text())
+    assert len(stamps) == m["frames"] == 9 and "No space left on device" in m["stopped"]
+
+
 def test_checkpoint_write_failures_are_one_line(tmp_path, monkeypatch):
     """orbax's I/O errors (tensorstore's status-coded ValueErrors, OSErrors) become one line naming
     the checkpoint folder; other errors pass through."""
