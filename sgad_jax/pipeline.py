@@ -295,8 +295,8 @@ def run(
             run_metrics["s_per_input_frame"] = (time.perf_counter() - t_run - compiled) / (len(system) - start)
         if not stopped:
             try:
-                run_metrics.update(system.judge_scene(finetune, stop=lambda: bool(requests)))
-            except DatasetError as err:  # e.g. the disk filled up under the refinement's spilled state
+                system.judge_scene(finetune, stop=lambda: bool(requests), out=run_metrics)
+            except DatasetError as err:  # e.g. the disk filled up under the refinement's spilled state; the scores before it stay
                 stopped = str(err)
             done = run_metrics.get("finetune_iterations", finetune)
             if requests and done < finetune:  # the refinement was cut short (its views scored as it was)

@@ -256,19 +256,22 @@ class SLAM:
             metrics.update(self.mapper.metrics())
         return metrics
 
-    def judge_scene(self, finetune: int = 0, stop=None) -> dict:
+    def judge_scene(self, finetune: int = 0, stop=None, out: dict | None = None) -> dict:
         """Score the held-out views rendered from the scene at their estimated poses (``nvs_*``
         means, and ``nvs_per_frame``); with ``finetune`` > 0 refine the merged map first, keeping
         the scores before it as ``nvs_*_before_finetune``; the refinement ends early once ``stop()``
-        is true. Call after :meth:`finish`."""
+        is true. Call after :meth:`finish`. The results are added to ``out`` (returned) as they
+        come, so a caller that passes it keeps the scores taken before an error."""
+        out = {} if out is None else out
         if self.mapper is None:
-            return {}
+            return out
         if finetune > 0 and self.source is None:
             raise ConfigError("the merged-map refinement reads the training views again: give SLAM a source")
         self._flush()
         source = self.source or self._held.__getitem__
         poses = self.trajectory()
-        out: dict = {"nvs_frames": len(self.holdout)} if self.holdout_every else {}
+        if self.holdout_every:
+            out["nvs_frames"] = len(self.holdout)
         scores = self.mapper.score_views(self.holdout, poses, source)
         if finetune > 0:
             if scores:

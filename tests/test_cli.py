@@ -231,6 +231,7 @@ def test_full_disk_in_the_refinement_is_one_line_and_keeps_the_trajectory(tmp_pa
     stamps, _ = read_tum_trajectory(out / "trajectory.txt")
     m = json.loads((out / "metrics.json").read_text())
     assert len(stamps) == m["frames"] == 9 and "No space left on device" in m["stopped"]
+    assert m["nvs_frames"] == 2 and 5 < m["nvs_psnr_before_finetune"] < 60  # the held-out scores before the refinement
 
 
 def test_checkpoint_write_failures_are_one_line(tmp_path, monkeypatch):
