@@ -29,6 +29,15 @@ class SyntheticConfig:
     jump: tuple[float, ...] = (0.2, 10.0)
 
 
+def _check_ranges(section: str, cfg, *, at_least_one=(), positive=(), non_negative=()) -> None:
+    """One line naming the first field out of its range (NaN is out of every range): a zero voxel or
+    a negative count otherwise fails deep inside a compiled step, or not at all."""
+    for names, ok, what in ((at_least_one, lambda v: v >= 1, ">= 1"), (positive, lambda v: v > 0, "> 0"), (non_negative, lambda v: v >= 0, ">= 0")):
+        for name in names:
+            if not ok(getattr(cfg, name)):
+                raise ConfigError(f"{section}.{name}: must be {what}, got {getattr(cfg, name)}")
+
+
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
     path: str = ""  # empty: the built-in synthetic scene
@@ -52,6 +61,7 @@ class DataConfig:
     synthetic: SyntheticConfig = SyntheticConfig()
 
     def __post_init__(self):
+        _check_ranges("data", self, positive=("tum_max_dt",), non_negative=("depth_scale", "depth_trunc"))
         if not 0.0 <= self.noise_share <= 1.0 or self.noise_sigma < 0:
             raise ConfigError(
                 f"data.noise_share must lie in [0, 1] and data.noise_sigma be >= 0; got {self.noise_share}, {self.noise_sigma}"
@@ -130,6 +140,16 @@ class TrackConfig:
     plane_points: bool = False
 
     def __post_init__(self):
+        _check_ranges(
+            "track", self,
+            at_least_one=("stride", "capacity", "max_iterations", "fuse_observations", "relocalise_points", "relocalise_map_points", "relocalise_iterations"),
+            positive=("depth_gate", "eps", "voxel_size", "tolerance", "max_correspondence"),
+            non_negative=("min_depth", "max_depth", "nn_weight", "depth_weight_power", "min_inlier_share", "min_conditioning", "median_gate"),
+        )
+        if self.window < 3 or self.window % 2 == 0 or not 3 <= self.k <= self.window**2:
+            raise ConfigError(f"track.window must be odd and >= 3, and track.k within [3, window^2]; got window {self.window}, k {self.k}")
+        if not 0 < self.page_low < self.page_high <= 1:
+            raise ConfigError(f"track.page_low and track.page_high: 0 < low < high <= 1; got {self.page_low}, {self.page_high}")
         if any(c < 1 for c in self.coarse):
             raise ConfigError(f"track.coarse: each level takes every c-th point, c >= 1; got {self.coarse}")
         if not self.extrapolation >= 1.0:
@@ -186,6 +206,13 @@ class MapConfig:
     host_budget_mb: float = 64.0  # mapped frames' Gaussians kept in host memory; older ones live on disk only
 
     def __post_init__(self):
+        _check_ranges(
+            "map", self,
+            non_negative=("iterations", "neighbours", "render_init_iterations", "lr_rgb", "lr_radius", "lr_opacity", "lr_offset",
+                          "weight_l1", "weight_ssim", "weight_depth", "host_budget_mb"),
+        )
+        if not 0 <= self.current_view_fraction <= 1:
+            raise ConfigError(f"map.current_view_fraction must lie in [0, 1]; got {self.current_view_fraction}")
         choices = {"depth_fill": ("inpaint", "render"), "radius_init": ("extent", "sigma")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -223,6 +250,7 @@ class SceneConfig:
     finetune_budget_mb: float = 4096.0
 
     def __post_init__(self):
+        _check_ranges("scene", self, non_negative=("finetune_lr_scale", "finetune_budget_mb"))
         if self.composite not in ("priority", "depth"):
             raise ConfigError(f"scene.composite: choose priority or depth, got {self.composite!r}")
         if self.frames < 1 or self.layers < 1:

@@ -131,8 +131,11 @@ def release_freed_memory() -> None:
 
 def _identity(cfg: SLAMConfig, ds: Dataset, track_only: bool, holdout_every: int) -> dict:
     """What a checkpoint must match to be resumed: the config, the mode and the dataset's frames."""
+    config = json.loads(json.dumps(to_dict(cfg)))
+    if config["data"]["path"]:  # `data`, `data/` and its absolute path are one folder
+        config["data"]["path"] = str(pathlib.Path(config["data"]["path"]).expanduser().resolve())
     return {
-        "config": json.loads(json.dumps(to_dict(cfg))),
+        "config": config,
         "track_only": track_only,
         "holdout_every": holdout_every,
         "dataset": {"name": ds.name, "layout": ds.layout, "frames": len(ds), "timestamps": [float(t) for t in ds.timestamps[:1]] + [float(t) for t in ds.timestamps[-1:]]},
@@ -183,6 +186,8 @@ def run(
     """
     if on_bad_frame not in ("stop", "skip"):
         raise ConfigError(f"--on-bad-frame must be stop or skip, got {on_bad_frame!r}")
+    if finetune < 0:
+        raise ConfigError(f"--finetune must be >= 0, got {finetune}")
     ds = open_dataset(cfg.data)
     ds.colour = not track_only or viewer is not None  # tracking alone never looks at colour (the live view does)
     out = None if out_dir is None else pathlib.Path(out_dir)
@@ -203,8 +208,10 @@ def run(
     if restored is not None and "depth_stamps" not in restored[0]:
         raise ConfigError(f"cannot resume {ckpt_root}: it was written by an older sgad_jax (no depth stamps); rerun without --resume or with a new --out")
     if out is not None and restored is None and main:
-        for stale in (out / "gaussians", out / "renders", out / "checkpoints"):
+        for stale in (out / "gaussians", out / "renders", out / "checkpoints", out / "plots"):
             shutil.rmtree(stale, ignore_errors=True)
+        for stale in ("gaussians.ply", "mesh.ply", "eval.json", "trajectory.png"):  # an earlier run's exports
+            (out / stale).unlink(missing_ok=True)
     if out is not None and jax.process_count() > 1:
         jax.experimental.multihost_utils.sync_global_devices("sgad_jax: outputs cleared")
     mesh = None if track_only else frames_mesh(devices)
@@ -230,10 +237,15 @@ def run(
         skipped[:] = meta.get("skipped", [])
         start = meta.get("next", len(system))
 
+    saved = [start if restored is not None else -1]  # the step last written (a bad frame can follow it)
+
     def save_checkpoint(next_frame: int) -> None:
+        if next_frame == saved[0]:  # orbax refuses to write a step twice; that one holds this state
+            return
         arrays, meta = system.checkpoint_state()
         meta.update(kept=kept, skipped=skipped, next=next_frame)
         checkpoint.save(ckpt_root, next_frame, arrays, {"identity": identity, "run": meta})
+        saved[0] = next_frame
 
     stopped, interrupted = None, None
     rss_trace = []
@@ -293,6 +305,9 @@ def run(
         compiled = (run_metrics.get("compile_s") or 0.0) + (run_metrics.get("map_compile_s") or 0.0)
         if len(system) > start:
             run_metrics["s_per_input_frame"] = (time.perf_counter() - t_run - compiled) / (len(system) - start)
+        if requests and not stopped:  # asked during the last frames' mapping: stop before the scoring
+            interrupted = requests[0]
+            stopped = f"interrupted by {signal.Signals(interrupted).name} after all {len(ds)} frames" + (", before the held-out views were scored" if holdout_every or finetune else "")
         if not stopped:
             try:
                 system.judge_scene(finetune, stop=lambda: bool(requests), out=run_metrics)

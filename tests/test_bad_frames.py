@@ -173,3 +173,87 @@ def test_timestamps_must_increase(tmp_path, capsys):
     m = json.loads((out / "metrics.json").read_text())
     assert len(m["skipped_frames"]) == 1 and "rgb/2.png" in m["skipped_frames"][0]["reason"]
     assert "not after the previous frame's" in m["skipped_frames"][0]["reason"]
+
+
+def _tiny_tum(root, n=5):
+    """A TUM-layout folder of ``n`` small frames 0.1 s apart, with ground truth."""
+    for sub in ("rgb", "depth"):
+        (root / sub).mkdir(parents=True)
+    for k in range(n):
+        cv2.imwrite(str(root / "rgb" / f"{k}.png"), np.full((24, 32, 3), 100, np.uint8))
+        cv2.imwrite(str(root / "depth" / f"{k}.png"), np.full((24, 32), 5000, np.uint16))
+    (root / "rgb.txt").write_text("# colour\n" + "".join(f"{1 + 0.1 * k:.3f} rgb/{k}.png\n" for k in range(n)))
+    (root / "depth.txt").write_text("# depth\n" + "".join(f"{1.001 + 0.1 * k:.3f} depth/{k}.png\n" for k in range(n)))
+    (root / "groundtruth.txt").write_text("".join(f"{1 + 0.05 * k:.3f} {0.01 * k} 0 0 0 0 0 1\n" for k in range(2 * n)))
+    return root
+
+
+@pytest.mark.parametrize("name,line", [("rgb.txt", 3), ("depth.txt", 2), ("groundtruth.txt", 4)])
+def test_a_timestamp_that_is_not_a_number_is_named_with_its_line(tmp_path, name, line):
+    """A NaN stamp compares false with every tolerance, so the association would take it for the
+    nearest of all frames (one depth image or one pose for the whole run): an error with its line."""
+    root = _tiny_tum(tmp_path / "tum")
+    lines = (root / name).read_text().splitlines(keepends=True)
+    lines[line - 1] = "nan " + lines[line - 1].split(maxsplit=1)[1]
+    (root / name).write_text("".join(lines))
+    with pytest.raises(DatasetError) as err:
+        open_dataset(DataConfig(path=str(root)))
+    assert str(err.value) == f"{root / name}: line {line}: timestamp 'nan' is not a finite number"
+
+
+def test_tum_lists_tolerate_a_byte_order_mark_and_odd_bytes_and_report_unmatched_frames(tmp_path):
+    root = _tiny_tum(tmp_path / "tum")
+    rgb = (root / "rgb.txt").read_bytes()
+    (root / "rgb.txt").write_bytes(b"\xef\xbb\xbf# caf\xe9 (latin-1)\n" + rgb)  # a BOM, and a byte that is not UTF-8
+    depth = (root / "depth.txt").read_text().splitlines(keepends=True)
+    (root / "depth.txt").write_text("".join(depth[:3]))  # depth for the first two colour frames only
+    ds = open_dataset(DataConfig(path=str(root)))
+    assert len(ds) == 2 and ds.layout == "tum"
+    assert ds.warnings == [f"{root / 'depth.txt'}: 3 of the 5 colour frames of rgb.txt have no stamp here within 0.08 s; they are left out"]
+    (root / "depth.txt").unlink()  # rgb.txt alone is still TUM: the missing list is named
+    with pytest.raises(DatasetError, match=f"^{root / 'depth.txt'}: file not found$"):
+        open_dataset(DataConfig(path=str(root)))
+
+
+def test_images_that_cannot_be_frames_say_why(tmp_path):
+    depth8 = tmp_path / "depth8.png"
+    cv2.imwrite(str(depth8), np.full((24, 32), 200, np.uint8))  # a preview or a mask, not depth
+    folder = tmp_path / "folder.png"
+    folder.mkdir()
+    dangling = tmp_path / "dangling.png"
+    dangling.symlink_to(tmp_path / "nowhere.png")
+    loop = tmp_path / "loop.png"
+    loop.symlink_to(loop)
+    for path, depth, why in [(depth8, True, "depth image is 8-bit"), (folder, False, "a folder, not a file"), (dangling, False, "broken symbolic link"), (loop, False, "broken symbolic link")]:
+        with pytest.raises(DatasetError) as err:
+            read_image(path, depth=depth)
+        assert str(err.value).startswith(f"{path}: {why}")
+    cv2.imwrite(str(depth8), np.full((24, 32), 200, np.uint16))
+    assert read_image(depth8, depth=True).dtype == np.uint16
+
+
+def test_a_bad_frame_after_a_checkpoint_stops_in_one_line_and_resumes_from_any_spelling_of_the_path(tmp_path, capsys):
+    """The frame after a periodic checkpoint is bad: the stop writes that checkpoint's step again
+    (orbax refuses a step twice); --resume with the folder spelled another way, while the frame is
+    still bad, stops again the same way; fixed, it completes. A fresh run into the folder removes an
+    earlier run's exports, which would no longer match it."""
+    depth = _generic(tmp_path / "d")
+    good = depth[3].read_bytes()
+    depth[3].write_bytes(b"not a png")
+    out = tmp_path / "out"
+    out.mkdir()
+    for stale in ("gaussians.ply", "mesh.ply", "eval.json", "trajectory.png"):
+        (out / stale).write_text("an earlier run's")
+    args = ["run", "--track-only", "--quiet", "--out", str(out), "--checkpoint-every", "3"]
+    (tmp_path / "x").mkdir()
+    for spelling, resume in [(tmp_path / "d", []), (f"{tmp_path / 'd'}/", ["--resume"]), (tmp_path / "x" / ".." / "d", ["--resume"])]:
+        code = main([*args, "--data", str(spelling), *resume])
+        err = capsys.readouterr().err
+        lines = [ln for ln in err.splitlines() if ln.strip()]
+        assert code == 2 and len(lines) == 1 and "0003.png: cannot decode" in lines[0] and "Traceback" not in err
+        assert len(read_tum_trajectory(out / "trajectory.txt")[0]) == 3
+    assert not any((out / stale).exists() for stale in ("gaussians.ply", "mesh.ply", "eval.json", "trajectory.png"))
+    depth[3].write_bytes(good)
+    assert main([*args, "--data", str(tmp_path / "d") + "/", "--resume"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["resumed_from_frame"] == 3 and m["frames"] == 6

@@ -87,6 +87,17 @@ def test_corrupt_frame_keeps_results(tmp_path, capsys):
         (["--set", "track.nosuchfield=1"], "nosuchfield"),
         (["--set", "track.stride=abc"], "track.stride"),
         (["--track-only", "--set", "track.coarse=3,0"], "track.coarse"),
+        # out of range: each used to fail deep in a compiled step (a traceback), after tracking had
+        # begun (results lost), or to run silently wrong
+        (["--set", "track.voxel_size=0"], "track.voxel_size: must be > 0, got 0.0"),
+        (["--set", "track.voxel_size=nan"], "track.voxel_size: must be > 0, got nan"),
+        (["--set", "track.capacity=0"], "track.capacity: must be >= 1"),
+        (["--set", "track.k=0"], "track.k within [3, window^2]"),
+        (["--set", "track.window=4"], "track.window must be odd"),
+        (["--set", "map.neighbours=-1"], "map.neighbours: must be >= 0"),
+        (["--set", "map.iterations=-1"], "map.iterations: must be >= 0"),
+        (["--set", "data.tum_max_dt=0"], "data.tum_max_dt: must be > 0"),
+        (["--finetune", "-5"], "--finetune must be >= 0"),
     ],
 )
 def test_bad_arguments_one_line(tmp_path, capsys, args, needle):

@@ -239,6 +239,39 @@ def test_sigterm_in_the_refinement_ends_it_and_keeps_the_run(tmp_path, monkeypat
     assert m["nvs_frames"] == 1 and m["nvs_psnr"] > 20 and m["nvs_psnr_before_finetune"] > 20
 
 
+@pytest.mark.slow
+def test_a_stop_signal_during_the_last_mapping_skips_the_scoring_and_says_so(tmp_path, monkeypatch):
+    """SIGTERM while the last frames are mapped (after the loop): the run is written with the
+    signal's exit status and a `stopped` line, instead of going on to score and exit 0."""
+    real = SLAM.finish
+
+    def finish(self):
+        signal.raise_signal(signal.SIGTERM)
+        return real(self)
+
+    monkeypatch.setattr(SLAM, "finish", finish)
+    original = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        out = tmp_path / "run"
+        code = main(["run", "--quiet", *TINY_ARGS, "--out", str(out), "--holdout-every", "4", "--checkpoint-every", "0"])
+    finally:
+        signal.signal(signal.SIGTERM, original)
+    assert code == 128 + signal.SIGTERM
+    poses, m = _results(out)
+    assert len(poses) == m["frames"] == 8 and "nvs_psnr" not in m and m["psnr"] > 20
+    assert m["stopped"] == "interrupted by SIGTERM after all 8 frames, before the held-out views were scored"
+
+
+def test_a_second_ctrl_c_is_one_line_and_status_130(monkeypatch, capsys):
+    def run(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "run", run)
+    assert main(["run", "--quiet"]) == 130
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("sgad-jax: interrupted") and "Traceback" not in err
+
+
 def test_first_stop_signal_is_a_request_and_a_second_ctrl_c_aborts():
     original = signal.getsignal(signal.SIGINT)
     try:

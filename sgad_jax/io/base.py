@@ -93,7 +93,8 @@ def read_image(path: pathlib.Path, *, depth: bool = False, decode: bool = True) 
     """
     path = pathlib.Path(path)
     if not path.is_file():
-        raise DatasetError(f"{path}: file not found")
+        why = "a folder, not a file" if path.is_dir() else "broken symbolic link" if path.is_symlink() else "file not found"
+        raise DatasetError(f"{path}: {why}")
     try:
         data = np.fromfile(path, np.uint8)
     except OSError as err:
@@ -110,6 +111,8 @@ def read_image(path: pathlib.Path, *, depth: bool = False, decode: bool = True) 
     if depth:
         if image.ndim != 2:
             raise DatasetError(f"{path}: depth image must have one channel, got shape {image.shape}")
+        if image.dtype.itemsize < 2:  # 8 bits cannot hold a depth map (a mask or a preview saved in its place)
+            raise DatasetError(f"{path}: depth image is 8-bit, expected 16-bit integer or float depth")
         return image
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 

@@ -114,27 +114,41 @@ def _natural_key(path: pathlib.Path):
     return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", path.stem)]
 
 
-def _tum_poses(path: pathlib.Path, rows: list[list[str]]) -> tuple[np.ndarray, np.ndarray]:
+def _tum_poses(path: pathlib.Path, rows: list[tuple[int, list[str]]]) -> tuple[np.ndarray, np.ndarray]:
     """(stamps, c2w poses) from TUM trajectory rows ``t tx ty tz qx qy qz qw``."""
-    try:
-        values = np.array(rows, dtype=np.float64)
-    except ValueError:
-        values = None
-    if values is None or values.ndim != 2 or values.shape[1] != 8:
-        raise DatasetError(f"{path}: malformed trajectory, expected lines 't tx ty tz qx qy qz qw'")
+    values = _table(path, rows, 8, "malformed trajectory, expected lines 't tx ty tz qx qy qz qw'")
     poses = np.tile(np.eye(4), (len(values), 1, 1))
     poses[:, :3, :3] = quaternion_to_matrix(values[:, 4:8])
     poses[:, :3, 3] = values[:, 1:4]
     return values[:, 0], poses
 
 
-def _list_rows(path: pathlib.Path) -> list[list[str]]:
-    """Non-empty, non-``#`` lines of a list file, split on whitespace."""
+def _list_rows(path: pathlib.Path) -> list[tuple[int, list[str]]]:
+    """(line number, fields) of the non-empty, non-``#`` lines of a list file, split on whitespace.
+    A byte-order mark or a stray non-UTF-8 byte (in a comment, say) does not make the file unreadable."""
     try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as e:
-        raise DatasetError(f"{path}: cannot read ({e.__class__.__name__})") from None
-    return [line.split() for line in lines if line.strip() and not line.lstrip().startswith("#")]
+        lines = path.read_bytes().decode("utf-8-sig", errors="replace").splitlines()
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read ({e.strerror or e.__class__.__name__})") from None
+    return [(n, line.split()) for n, line in enumerate(lines, 1) if line.strip() and not line.lstrip().startswith("#")]
+
+
+def _table(path: pathlib.Path, rows: list[tuple[int, list[str]]], columns: int, expected: str, numeric: int | None = None) -> np.ndarray:
+    """The first ``numeric`` (all) of ``columns`` fields of each row as float64; the first row that is
+    not that, or whose timestamp (first field) is not a finite number, is named in the error (a NaN
+    stamp would otherwise match every frame in the association)."""
+    numeric = columns if numeric is None else numeric
+    values = np.empty((len(rows), numeric))
+    for r, (n, fields) in enumerate(rows):
+        try:
+            if len(fields) != columns:
+                raise ValueError
+            values[r] = [float(x) for x in fields[:numeric]]
+        except ValueError:
+            raise DatasetError(f"{path}: line {n}: {expected}") from None
+        if not np.isfinite(values[r, 0]):
+            raise DatasetError(f"{path}: line {n}: timestamp {fields[0]!r} is not a finite number")
+    return values
 
 
 class _FileDataset(Dataset):
@@ -183,13 +197,15 @@ class TUMDataset(_FileDataset):
         if len(t_rgb) == 0 or len(t_depth) == 0:
             raise DatasetError(f"{rgb_list if len(t_rgb) == 0 else depth_list}: no frames listed")
 
-        kept, last = [], None
+        kept, last, unmatched = [], None, {depth_list: 0, gt_file: 0}
         for i, t in enumerate(t_rgb):
             j = int(np.argmin(np.abs(t_depth - t)))
             k = int(np.argmin(np.abs(t_pose - t))) if t_pose is not None else -1
             if abs(t_depth[j] - t) >= cfg.tum_max_dt:
+                unmatched[depth_list] += 1
                 continue
             if t_pose is not None and abs(t_pose[k] - t) >= cfg.tum_max_dt:
+                unmatched[gt_file] += 1
                 continue
             # A stamp that goes back in time is kept, for the run to report it as a bad frame.
             if last is None or t - last > 1.0 / TUM_FRAME_RATE or t <= last:
@@ -211,19 +227,18 @@ class TUMDataset(_FileDataset):
         fx, fy, cx, cy = TUM_INTRINSICS[int(match.group(1)) if match else 1]
         self.intrinsics_full = _intrinsics(self.root, fx, fy, cx, cy, *_image_size(self.depth_paths[0]))
         self._finish_init()
+        self.warnings += [
+            f"{path}: {n} of the {len(t_rgb)} colour frames of {rgb_list.name} have no stamp here within {cfg.tum_max_dt} s; they are left out"
+            for path, n in unmatched.items() if n
+        ]
 
     @staticmethod
     def _read_list(path: pathlib.Path) -> tuple[np.ndarray, list[str]]:
         if not path.is_file():
             raise DatasetError(f"{path}: file not found")
         rows = _list_rows(path)
-        try:
-            stamps = np.array([float(r[0]) for r in rows], np.float64)
-        except ValueError:
-            stamps = None
-        if stamps is None or any(len(r) != 2 for r in rows):
-            raise DatasetError(f"{path}: malformed list, expected lines 'timestamp filename'")
-        return stamps, [r[1] for r in rows]
+        stamps = _table(path, rows, 2, "malformed list, expected lines 'timestamp filename'", numeric=1)[:, 0]
+        return stamps, [fields[1] for _, fields in rows]
 
 
 # --- Replica -------------------------------------------------------------------------------------
@@ -554,7 +569,7 @@ LOADERS: dict[str, type[Dataset]] = {
 LAYOUTS = (*LOADERS, "synthetic")
 
 _SIGNATURES = {  # in order of detection: the more specific layouts first
-    "tum": lambda p: (p / "rgb.txt").is_file() and (p / "depth.txt").is_file(),
+    "tum": lambda p: (p / "rgb.txt").is_file() or (p / "depth.txt").is_file(),  # one missing: say so, as TUM
     "replica": lambda p: any((p / "results").glob("frame*.jpg")),
     "scannetpp": lambda p: any((d / "nerfstudio" / "transforms_undistorted.json").is_file() for d in (p, p / "dslr")),
     "scannet": lambda p: any(
