@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import sys
 
@@ -100,6 +101,8 @@ def _add_run_dir_commands(sub) -> None:
 def export_ply(run_dir, voxel=None, out=None) -> int:
     from sgad_jax.io.ply import export_run
 
+    if voxel is not None and not (math.isfinite(voxel) and voxel >= 0):  # argparse takes any float, nan and -1 too
+        raise ConfigError(f"--voxel {voxel:g}: must be a finite size >= 0 in metres (0: keep all)")
     path, info = export_run(run_dir, voxel, out)
     print(f"sgad-jax export: kept {info.kept} of {info.total} Gaussians ({info.frames} frames; {info.total - info.visible} transparent or behind their camera dropped; voxel {info.voxel:g} m) -> {path}", file=sys.stderr)
     return 0
@@ -108,6 +111,8 @@ def export_ply(run_dir, voxel=None, out=None) -> int:
 def draw_plots(run_dir, compare: int = 3) -> int:
     from sgad_jax.io.plots import plot_run
 
+    if compare < 0:
+        raise ConfigError(f"--compare {compare}: must be >= 0 (frames to compare)")
     written, notes = plot_run(run_dir, compare=compare)
     for path in written:
         print(f"sgad-jax plots: wrote {path}", file=sys.stderr)
@@ -215,6 +220,14 @@ def resolve_config(preset=None, data=None, *, start=None, stride=None, max_frame
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # a second Ctrl-C in a run (the first stops it cleanly), or one outside a run's loop
+        print("sgad-jax: interrupted: stopped at once, without writing what was in hand", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
     args = _parser().parse_args(argv)
     if args.command != "run":
         return _run_dir_command(args)

@@ -266,6 +266,9 @@ class ExportConfig:
     # spacing over indoor depths while the frames re-covering the same surface are merged away.
     voxel: float = 0.005
 
+    def __post_init__(self):
+        _check_ranges("export", self, non_negative=("voxel",))
+
 
 @dataclasses.dataclass(frozen=True)
 class MeshConfig:
@@ -277,6 +280,9 @@ class MeshConfig:
     max_voxels: int = 1 << 27  # grid budget (~20 bytes a voxel); a larger grid is coarsened, and says so
     min_depth: float = 0.05  # depth outside [min_depth, max_depth] is not fused
     max_depth: float = 0.0  # 0: no limit
+
+    def __post_init__(self):
+        _check_ranges("mesh", self, at_least_one=("max_voxels",), positive=("voxel", "trunc"), non_negative=("max_weight", "min_depth", "max_depth"))
 
 
 @dataclasses.dataclass(frozen=True)

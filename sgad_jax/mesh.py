@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from sgad_jax.config import MeshConfig
+from sgad_jax.config import ConfigError, MeshConfig
 from sgad_jax.types import Intrinsics
 
 #: bytes a voxel costs: TSDF, weight and RGB as float32
@@ -70,6 +70,15 @@ class GridPlan:
     @property
     def voxels(self) -> int:
         return int(np.prod(self.shape))
+
+
+def check_config(cfg: MeshConfig) -> None:
+    """Raise a :class:`ConfigError` when ``mesh.max_voxels`` is below the coarsest grid (truncation
+    plus one voxel on each side), which sent :func:`plan_grid`'s coarsening to infinity. (The
+    config itself refuses values out of range.)"""
+    smallest = (math.floor(2 + 2 * cfg.trunc / cfg.voxel) + 2) ** 3
+    if cfg.max_voxels < smallest:
+        raise ConfigError(f"mesh.max_voxels: must be >= {smallest} (the coarsest grid for mesh.trunc / mesh.voxel = {cfg.trunc / cfg.voxel:g}), got {cfg.max_voxels}")
 
 
 def scaled_params(cfg: MeshConfig, downscale: int = 1) -> tuple[float, float]:
@@ -256,12 +265,17 @@ def mesh_run(run_dir, cfg: MeshConfig | None = None, downscale: int | None = Non
 
     Raises:
         DatasetError: a missing or unreadable file, named.
+        ConfigError: a mesh setting fusion cannot use (:func:`check_config`).
     """
     from sgad_jax.io.base import DatasetError
     from sgad_jax.io.ply import write_mesh_ply
     from sgad_jax.io.rundir import Run, read_render
 
     run = Run(run_dir)
+    saved = run.config if (run.root / "metrics.json").is_file() else None
+    cfg = cfg if cfg is not None else (saved.mesh if saved is not None else MeshConfig())
+    downscale = downscale if downscale is not None else (saved.data.downscale if saved is not None else 1)
+    check_config(cfg)  # before the renders are read: a bad setting is the first thing to fix
     indices = run.render_frames(with_depth=True)
     if not indices:
         raise DatasetError(f"{run.root / 'renders'}: no rendered colour and depth (rgb_XXXXXX.png + depth_XXXXXX.png); run with --save-renders")
@@ -272,9 +286,6 @@ def mesh_run(run_dir, cfg: MeshConfig | None = None, downscale: int | None = Non
     rgb, _ = read_render(run.root, indices[0])
     if rgb.shape[:2] != (intr.height, intr.width):
         raise DatasetError(f"{run.root / 'renders'}: renders are {rgb.shape[1]}x{rgb.shape[0]}, the cameras {intr.width}x{intr.height}")
-    saved = run.config if (run.root / "metrics.json").is_file() else None
-    cfg = cfg if cfg is not None else (saved.mesh if saved is not None else MeshConfig())
-    downscale = downscale if downscale is not None else (saved.data.downscale if saved is not None else 1)
     renders = _Renders(run.root, indices)
     try:
         vertices, faces, colours, plan = fuse(renders, poses[indices], intr, cfg, downscale, log=log)

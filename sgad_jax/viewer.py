@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import pathlib
+import socket
 import sys
 import time
 
@@ -32,6 +33,22 @@ def _viser():
     except ImportError:
         raise ConfigError("the viewer needs viser, an optional extra: pip install 'sgad_jax[viewer]'") from None
     return viser
+
+
+def _server(host: str, port: int):
+    """A viser server listening on ``host:port``, or a :class:`ConfigError` naming the address.
+    viser starts in a thread of its own: a bad port there is a traceback and a wait that never ends,
+    and a taken port makes it move silently to the next, so the address is tried here first."""
+    if not 0 <= port <= 65535:
+        raise ConfigError(f"port {port}: must be 0-65535")
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0]
+        with socket.socket(family, kind, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server does: a port in TIME_WAIT is free
+            s.bind(address)
+    except (OSError, UnicodeError) as err:  # in use, not permitted, unknown or malformed host
+        raise ConfigError(f"cannot listen on {host}:{port} ({getattr(err, 'strerror', None) or err})") from None
+    return _viser().ViserServer(host=host, port=port, verbose=False)
 
 
 def merged_gaussians(run_dir, max_count: int, *, seed: int = 0) -> dict:
@@ -104,15 +121,15 @@ def build_scene(server, run_dir, *, max_splats: int = 300_000) -> dict:
 
 def serve(run_dir, *, host: str = "0.0.0.0", port: int = 8080, max_splats: int = 300_000, block: bool = True):
     """Serve the run on ``http://host:port`` until interrupted (``block=False``: return the server)."""
-    viser = _viser()
+    _viser()  # a missing extra is said before anything else
     run = pathlib.Path(run_dir)
     if not run.is_dir():
         raise DatasetError(f"{run}: run folder not found")
     Run(run).trajectory  # a bad folder fails before the server starts
-    server = viser.ViserServer(host=host, port=port, verbose=False)
+    server = _server(host, port)
     summary = build_scene(server, run, max_splats=max_splats)
     shown = f"{summary['gaussians_shown']} of {summary['gaussians_total']} Gaussians"
-    print(f"sgad-jax view: {run} ({summary['frames']} frames, {shown}{', mesh' if 'mesh_faces' in summary else ''}) at http://{host}:{port}", file=sys.stderr, flush=True)
+    print(f"sgad-jax view: {run} ({summary['frames']} frames, {shown}{', mesh' if 'mesh_faces' in summary else ''}) at http://{host}:{server.get_port()}", file=sys.stderr, flush=True)
     if not block:
         return server
     try:
@@ -129,12 +146,11 @@ class LiveView:
     (merged Gaussians, mesh) as ``sgad-jax view`` shows it. Built only when asked for."""
 
     def __init__(self, intr, *, host: str = "0.0.0.0", port: int = 8080, points_every: int = 5, stride: int = 4):
-        viser = _viser()
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server = _server(host, port)
         self.server.scene.set_up_direction("-y")
         self.intr, self.points_every, self.stride = intr, points_every, stride
         self.centres: list[np.ndarray] = []
-        print(f"sgad-jax: live viewer at http://{host}:{port}", file=sys.stderr, flush=True)
+        print(f"sgad-jax: live viewer at http://{host}:{self.server.get_port()}", file=sys.stderr, flush=True)
 
     def frame(self, index: int, pose: np.ndarray, sample) -> None:
         """Show tracked frame ``index`` (camera-to-world ``pose``, the sample it was tracked from)."""

@@ -327,6 +327,10 @@ def test_cli_mesh_and_eval_mesh(tmp_path, capsys):
         (["mesh", "{tmp}/nowhere"], "run folder not found"),
         (["mesh", "{run}", "--set", "map.iterations=3"], "only mesh.*"),
         (["eval-mesh", "{run}", "--gt-mesh", "{tmp}/missing.ply"], "no mesh"),
+        # settings fusion cannot use, said before the renders are looked for (the config refuses the first two)
+        (["mesh", "{run}", "--set", "mesh.voxel=0"], "mesh.voxel: must be > 0, got 0.0"),
+        (["mesh", "{run}", "--set", "mesh.voxel=-0.01"], "mesh.voxel: must be > 0, got -0.01"),
+        (["mesh", "{run}", "--set", "mesh.max_voxels=100"], "mesh.max_voxels: must be >= 1728"),
     ],
 )
 def test_cli_mesh_errors_one_line(tmp_path, capsys, args, needle):

@@ -128,3 +128,69 @@ def test_plots_mark_held_out_views_and_need_no_renders(run_dir, tmp_path, capsys
         _png_size(copy_dir / name)
     assert not list((copy_dir / "plots").glob("compare_*.png"))
     assert main(["plots", str(tmp_path / "missing")]) == 2
+
+
+def _defect(run_dir, dest, defect):
+    """A copy of the run with one defect, as a crash, a stray copy or another program leaves it."""
+    shutil.copytree(run_dir, dest)
+    if defect == "metrics_list":
+        (dest / "metrics.json").write_text("[]")
+    elif defect == "empty_npz":
+        (dest / "gaussians" / "frame_000003.npz").write_bytes(b"")
+    elif defect == "trajectory_dir":
+        (dest / "trajectory.txt").unlink()
+        (dest / "trajectory.txt").mkdir()
+    return dest
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "defect, args, needle",
+    [
+        ("metrics_list", ["export"], "metrics.json: not a JSON object"),
+        ("metrics_list", ["eval"], "metrics.json: not a JSON object"),
+        ("metrics_list", ["plots"], "metrics.json: not a JSON object"),
+        ("metrics_list", ["mesh", "--compile-cache", "off"], "metrics.json: not a JSON object"),
+        ("empty_npz", ["export"], "frame_000003.npz: unreadable"),
+        ("empty_npz", ["eval", "--rerender"], "frame_000003.npz: unreadable"),
+        ("trajectory_dir", ["export"], "trajectory.txt: unreadable"),
+        (None, ["export", "--voxel", "-1"], "--voxel -1: must be"),
+        (None, ["plots", "--compare", "-3"], "--compare -3: must be >= 0"),
+    ],
+)
+def test_bad_run_files_one_line(run_dir, tmp_path, capsys, defect, args, needle):
+    """A damaged run folder or a bad option: one line naming the file (or option), status 2."""
+    bad = _defect(run_dir, tmp_path / "bad", defect)
+    assert main([args[0], str(bad), *args[1:]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err, err
+
+
+@pytest.mark.slow
+def test_stray_files_in_a_run_are_ignored(run_dir, tmp_path, capsys):
+    """Files whose names are not the run's exact pattern (a file manager's copy, a hand-named render)
+    are not the run's: export, eval and mesh read the run's own files and ignore them."""
+    from sgad_jax.io.rundir import Run
+
+    odd = shutil.copytree(run_dir, tmp_path / "odd")
+    shutil.copy(odd / "gaussians" / "frame_000003.npz", odd / "gaussians" / "frame_000003 (copy).npz")
+    for name in ("rgb_3a.png", "rgb_3.png", "rgb_0000003.png"):
+        shutil.copy(odd / "renders" / "rgb_000003.png", odd / "renders" / name)
+    assert Run(odd).gaussian_frames() == Run(odd).render_frames() == [0, 1, 2, 3]
+    assert main(["export", str(odd)]) == 0
+    assert "(4 frames;" in capsys.readouterr().err
+    assert main(["eval", str(odd)]) == 0
+    assert json.loads((odd / "eval.json").read_text())["rendered_frames"] == 4
+    assert main(["mesh", str(odd), "--set", "mesh.voxel=0.04", "--compile-cache", "off"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames"] == 4
+
+
+def test_merge_eval_json_refuses_a_list(tmp_path):
+    """eval.json holding valid JSON that is not an object: one line naming it, the file left as it was."""
+    from sgad_jax.io.base import DatasetError
+    from sgad_jax.io.rundir import merge_eval_json
+
+    (tmp_path / "eval.json").write_text("[1, 2]")
+    with pytest.raises(DatasetError, match="eval.json: exists but is not a JSON object"):
+        merge_eval_json(tmp_path, {"mesh_f1": 0.5})
+    assert (tmp_path / "eval.json").read_text() == "[1, 2]"

@@ -5,6 +5,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 
@@ -131,3 +132,25 @@ def test_run_with_live_viewer_answers_http_while_and_after_it_runs(tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+
+
+@pytest.mark.parametrize("taken", [False, True], ids=["out_of_range", "in_use"])
+def test_view_bad_port_one_line(tmp_path, capsys, taken):
+    """A port out of range, or one in use, is one line and status 2. viser starts in a thread of its
+    own: there a bad port was a traceback and a wait that never ended, and a taken one a silent move
+    to the next port. The command runs in a thread here so that a hang fails the test."""
+    from sgad_jax.cli import main
+
+    fabricate_run(tmp_path)
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1] if taken else 99999
+        code = []
+        argv = ["view", str(tmp_path), "--host", "127.0.0.1", "--port", str(port)]
+        worker = threading.Thread(target=lambda: code.append(main(argv)), daemon=True)
+        worker.start()
+        worker.join(60)
+    assert code == [2], "sgad-jax view did not return"
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(port) in err, err

@@ -39,9 +39,11 @@ def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
 
 
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of quaternions ``(x, y, z, w)`` (..., 4), normalised first."""
+    """Rotation matrices (..., 3, 3) of quaternions ``(x, y, z, w)`` (..., 4), normalised first; a
+    zero quaternion gives NaN, an unknown pose, which the loaders report as such."""
     q = np.asarray(q, np.float64)
-    x, y, z, w = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x, y, z, w = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
     return np.stack(
         [
             np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),

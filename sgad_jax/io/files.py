@@ -51,3 +51,14 @@ def write_text(path, text: str) -> pathlib.Path:
 
 def write_json(path, data) -> pathlib.Path:
     return write_text(path, json.dumps(data, indent=2))
+
+
+def numbered_files(folder: pathlib.Path, prefix: str, suffix: str) -> list[int]:
+    """Indices ``i`` of the files ``folder/{prefix}{i:06d}{suffix}``, ascending. Other names (a
+    copy such as ``frame_000003 (copy).npz``, ``rgb_3a.png``) are not the run's and are ignored."""
+    found = []
+    for p in folder.glob(f"{prefix}[0-9]*{suffix}"):
+        digits = p.name[len(prefix) : -len(suffix)]
+        if digits.isascii() and digits.isdigit() and p.name == f"{prefix}{int(digits):06d}{suffix}":
+            found.append(int(digits))
+    return sorted(found)

@@ -10,18 +10,21 @@ intrinsics from its dataset, opened from the config. Every problem is a one-line
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import json
 import pathlib
 import typing
+import zipfile
+import zlib
 
 import numpy as np
 
 from sgad_jax.config import DataConfig, ExportConfig, SLAMConfig
 from sgad_jax.io.base import DatasetError
 from sgad_jax.io.export import read_tum_trajectory
-from sgad_jax.io.files import write_json
+from sgad_jax.io.files import numbered_files, write_json
 from sgad_jax.io.store import FIELDS
 from sgad_jax.types import Intrinsics, PixelGaussians, make_intrinsics
 
@@ -58,11 +61,17 @@ class Run:
     def metrics(self) -> dict:
         path = self.root / "metrics.json"
         try:
-            return json.loads(path.read_text())
+            metrics = json.loads(path.read_text())
         except FileNotFoundError:
             raise DatasetError(f"{path}: not found (is {self.root} the --out folder of a finished run?)") from None
         except (OSError, ValueError) as err:
             raise DatasetError(f"{path}: unreadable ({err})") from None
+        # every reader does metrics.get(...): valid JSON of another shape must fail here, named
+        if not isinstance(metrics, dict):
+            raise DatasetError(f"{path}: not a JSON object (written by another program?)")
+        if not isinstance(metrics.get("config", {}), dict):
+            raise DatasetError(f"{path}: its 'config' is not a JSON object (written by another program?)")
+        return metrics
 
     @functools.cached_property
     def data_config(self) -> DataConfig:
@@ -87,7 +96,9 @@ class Run:
             return read_tum_trajectory(path)
         except FileNotFoundError:
             raise DatasetError(f"{path}: not found (is {self.root} the --out folder of a finished run?)") from None
-        except ValueError as err:
+        except (OSError, UnicodeDecodeError) as err:  # a folder, no permission, not text: not a bad line
+            raise DatasetError(f"{path}: unreadable ({getattr(err, 'strerror', None) or err})") from None
+        except ValueError as err:  # a bad line, named by read_tum_trajectory
             raise DatasetError(str(err)) from None
 
     @functools.cached_property
@@ -115,18 +126,29 @@ class Run:
 
     def gaussian_frames(self) -> list[int]:
         """Run indices of the frames with stored Gaussians, ascending."""
-        return sorted(int(p.stem[6:]) for p in (self.root / "gaussians").glob("frame_*.npz"))
+        return numbered_files(self.root / "gaussians", "frame_", ".npz")
+
+    @contextlib.contextmanager
+    def _frame_file(self, index: int):
+        """Frame ``index``'s ``.npz``, open; any failure to read it, in the ``with`` body too (its
+        arrays are read lazily), becomes a :class:`DatasetError` naming the file."""
+        path = self.root / "gaussians" / f"frame_{index:06d}.npz"
+        try:
+            z = np.load(path)
+            if not isinstance(z, np.lib.npyio.NpzFile):  # a bare .npy array under the name
+                raise ValueError("not an .npz archive")
+            with z:
+                yield z
+        except FileNotFoundError:
+            raise DatasetError(f"{path}: not found") from None
+        # zero bytes: EOFError; a cut zip: BadZipFile or zlib.error; a missing field: KeyError
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+            raise DatasetError(f"{path}: unreadable ({err or type(err).__name__})") from None
 
     def gaussians(self, index: int) -> PixelGaussians:
         """Frame ``index``'s stored Gaussians (host float32 arrays)."""
-        path = self.root / "gaussians" / f"frame_{index:06d}.npz"
-        try:
-            with np.load(path) as z:
-                return PixelGaussians(**{k: np.asarray(z[k], np.float32) for k in FIELDS})
-        except FileNotFoundError:
-            raise DatasetError(f"{path}: not found") from None
-        except (OSError, ValueError, KeyError) as err:
-            raise DatasetError(f"{path}: unreadable ({err})") from None
+        with self._frame_file(index) as z:
+            return PixelGaussians(**{k: np.asarray(z[k], np.float32) for k in FIELDS})
 
     def mapping_poses(self) -> np.ndarray:
         """``(f, 4, 4)`` camera-to-world poses the frames' Gaussians were mapped at: the ``pose``
@@ -134,8 +156,7 @@ class Run:
         colour image's stamp), else the trajectory's."""
         poses = self.trajectory[1].copy()
         for i in self.gaussian_frames():
-            path = self.root / "gaussians" / f"frame_{i:06d}.npz"
-            with np.load(path) as z:
+            with self._frame_file(i) as z:
                 if "pose" in z.files and i < len(poses):
                     poses[i] = z["pose"]
         return poses
@@ -145,7 +166,7 @@ class Run:
         ``kind`` "nvs" the held-out views' ``renders/nvs_rgb_XXXXXX.png``), and with
         ``with_depth`` its depth render too."""
         prefix = f"{kind}_" if kind else ""
-        found = sorted(int(p.stem[len(prefix) + 4 :]) for p in (self.root / "renders").glob(f"{prefix}rgb_[0-9]*.png"))
+        found = numbered_files(self.root / "renders", f"{prefix}rgb_", ".png")
         if with_depth:
             found = [i for i in found if (self.root / "renders" / f"{prefix}depth_{i:06d}.png").is_file()]
         return found
@@ -185,7 +206,9 @@ def merge_eval_json(run_dir, values: dict) -> pathlib.Path:
         try:
             current = json.loads(path.read_text())
         except ValueError:
-            raise DatasetError(f"{path}: exists but is not JSON; move it away to write the scores") from None
+            current = None
+        if not isinstance(current, dict):  # not JSON, or a list: nothing to merge the scores into
+            raise DatasetError(f"{path}: exists but is not a JSON object; move it away to write the scores")
     current.update(values)
     write_json(path, current)
     return path

@@ -20,7 +20,7 @@ import weakref
 
 import numpy as np
 
-from sgad_jax.io.files import atomic_write
+from sgad_jax.io.files import atomic_write, numbered_files
 from sgad_jax.types import PixelGaussians
 
 FIELDS = tuple(f.name for f in dataclasses.fields(PixelGaussians))
@@ -39,7 +39,7 @@ class GaussianStore:
         self.budget = int(budget_mb * 2**20)
         self._memory: collections.OrderedDict[int, PixelGaussians] = collections.OrderedDict()
         self._bytes = 0
-        self._on_disk: set[int] = {int(p.stem[6:]) for p in self.root.glob("frame_*.npz")}
+        self._on_disk: set[int] = set(numbered_files(self.root, "frame_", ".npz"))
         self.count = 0  # Gaussians put so far
         self._poses: dict[int, np.ndarray] = {}
 
