@@ -143,8 +143,8 @@ class TrackConfig:
         _check_ranges(
             "track", self,
             at_least_one=("stride", "capacity", "max_iterations", "fuse_observations", "relocalise_points", "relocalise_map_points", "relocalise_iterations"),
-            positive=("depth_gate", "eps", "voxel_size", "tolerance", "max_correspondence"),
-            non_negative=("min_depth", "max_depth", "nn_weight", "depth_weight_power", "min_inlier_share", "min_conditioning", "median_gate"),
+            positive=("depth_gate", "eps", "voxel_size", "max_correspondence"),
+            non_negative=("tolerance", "min_depth", "max_depth", "nn_weight", "depth_weight_power", "min_inlier_share", "min_conditioning", "median_gate"),
         )
         if self.window < 3 or self.window % 2 == 0 or not 3 <= self.k <= self.window**2:
             raise ConfigError(f"track.window must be odd and >= 3, and track.k within [3, window^2]; got window {self.window}, k {self.k}")

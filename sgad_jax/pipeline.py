@@ -210,7 +210,7 @@ def run(
     if out is not None and restored is None and main:
         for stale in (out / "gaussians", out / "renders", out / "checkpoints", out / "plots"):
             shutil.rmtree(stale, ignore_errors=True)
-        for stale in ("gaussians.ply", "mesh.ply", "eval.json", "trajectory.png"):  # an earlier run's exports
+        for stale in ("gaussians.ply", "mesh.ply", "eval.json", "report.md", "trajectory.png"):  # an earlier run's exports
             (out / stale).unlink(missing_ok=True)
     if out is not None and jax.process_count() > 1:
         jax.experimental.multihost_utils.sync_global_devices("sgad_jax: outputs cleared")

@@ -242,7 +242,7 @@ def test_a_bad_frame_after_a_checkpoint_stops_in_one_line_and_resumes_from_any_s
     depth[3].write_bytes(b"not a png")
     out = tmp_path / "out"
     out.mkdir()
-    for stale in ("gaussians.ply", "mesh.ply", "eval.json", "trajectory.png"):
+    for stale in ("gaussians.ply", "mesh.ply", "eval.json", "report.md", "trajectory.png"):
         (out / stale).write_text("an earlier run's")
     args = ["run", "--track-only", "--quiet", "--out", str(out), "--checkpoint-every", "3"]
     (tmp_path / "x").mkdir()
@@ -252,7 +252,7 @@ def test_a_bad_frame_after_a_checkpoint_stops_in_one_line_and_resumes_from_any_s
         lines = [ln for ln in err.splitlines() if ln.strip()]
         assert code == 2 and len(lines) == 1 and "0003.png: cannot decode" in lines[0] and "Traceback" not in err
         assert len(read_tum_trajectory(out / "trajectory.txt")[0]) == 3
-    assert not any((out / stale).exists() for stale in ("gaussians.ply", "mesh.ply", "eval.json", "trajectory.png"))
+    assert not any((out / stale).exists() for stale in ("gaussians.ply", "mesh.ply", "eval.json", "report.md", "trajectory.png"))
     depth[3].write_bytes(good)
     assert main([*args, "--data", str(tmp_path / "d") + "/", "--resume"]) == 0
     m = json.loads((out / "metrics.json").read_text())
