@@ -10,10 +10,13 @@ leaves the previous complete checkpoint to resume from.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import pathlib
 import re
+import shutil
+import sys
 
 import jax
 import numpy as np
@@ -21,6 +24,19 @@ import orbax.checkpoint as ocp
 
 from sgad_jax.config import ConfigError
 from sgad_jax.io.base import DatasetError
+
+
+@contextlib.contextmanager
+def _quiet_orbax():
+    """orbax logs a failed write or read (with its traceback) on top of raising it; the errors
+    raised here say it in one line."""
+    absl_log = logging.getLogger("absl")
+    level = absl_log.level
+    absl_log.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        absl_log.setLevel(level)
 
 
 def _manager(root: pathlib.Path) -> ocp.CheckpointManager:
@@ -31,12 +47,8 @@ def _manager(root: pathlib.Path) -> ocp.CheckpointManager:
 def save(root: pathlib.Path, step: int, arrays: dict[str, np.ndarray], meta: dict) -> None:
     """Write checkpoint ``step`` (the number of frames done) under ``root``; DatasetError (one line)
     when it cannot be written, e.g. on a full disk (the previous checkpoint stays)."""
-    # orbax's writer threads log a failed write with its traceback; the error raised here says it in one line
-    absl_log = logging.getLogger("absl")
-    level = absl_log.level
-    absl_log.setLevel(logging.CRITICAL)
     try:
-        with _manager(root) as mngr:
+        with _quiet_orbax(), _manager(root) as mngr:
             mngr.save(step, args=ocp.args.Composite(arrays=ocp.args.StandardSave(arrays), meta=ocp.args.JsonSave(meta)), force=True)
     except OSError as err:
         raise DatasetError(f"{root}: cannot write checkpoint {step} ({err.strerror or err})") from None
@@ -47,20 +59,32 @@ def save(root: pathlib.Path, step: int, arrays: dict[str, np.ndarray], meta: dic
         code = re.search(r"os_error_code='?(\d+)", text)
         reason = os.strerror(int(code.group(1))) if code else text.split(":")[0]
         raise DatasetError(f"{root}: cannot write checkpoint {step} ({reason})") from None
-    finally:
-        absl_log.setLevel(level)
 
 
 def latest(root: pathlib.Path) -> tuple[dict[str, np.ndarray], dict] | None:
-    """The newest complete checkpoint under ``root`` as ``(arrays, meta)``, or None."""
+    """The newest readable checkpoint under ``root`` as ``(arrays, meta)``, or None when there is
+    none. A damaged step (a file cut or deleted, a stray folder) is passed over with a warning line
+    for the one before it; DatasetError (one line) when every step is damaged."""
     if not root.is_dir():
         return None
-    with _manager(root) as mngr:
-        step = mngr.latest_step()
-        if step is None:
-            return None
-        got = mngr.restore(step, args=ocp.args.Composite(arrays=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore()))
-    return {k: np.asarray(v) for k, v in got["arrays"].items()}, dict(got["meta"])
+    damaged = []
+    with _quiet_orbax(), _manager(root) as mngr:
+        for step in sorted(mngr.all_steps(), reverse=True):
+            try:
+                got = mngr.restore(step, args=ocp.args.Composite(arrays=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore()))
+                meta = dict(got["meta"])
+                if not {"identity", "run"} <= meta.keys():
+                    raise KeyError("meta has no identity or run")
+            except Exception as err:  # orbax and tensorstore raise many kinds (ValueError, KeyError, JSON errors) for one cause
+                damaged.append((f"{root / str(step)}: damaged checkpoint ({str(err).splitlines()[0][:120] if str(err) else type(err).__name__})", step))
+                continue
+            for line, bad in damaged:
+                print(f"sgad-jax: warning: {line}; removed, resuming from step {step}", file=sys.stderr)
+                shutil.rmtree(root / str(bad), ignore_errors=True)  # the run writes that step again
+            return {k: np.asarray(v) for k, v in got["arrays"].items()}, meta
+    if damaged:
+        raise DatasetError(f"{damaged[0][0]}, and no older one is readable: rerun without --resume or with a new --out")
+    return None
 
 
 def flatten(prefix: str, tree) -> dict[str, np.ndarray]:

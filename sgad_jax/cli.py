@@ -214,7 +214,11 @@ def resolve_config(preset=None, data=None, *, start=None, stride=None, max_frame
     if preset is None:
         preset = "demo" if not data else _PRESET_FOR_LAYOUT[detect_layout(data)]
     cfg = load_preset(preset)
-    selection = {"path": data, "start": start, "stride": stride, "max_frames": max_frames}
+    # absolute, so that the run's saved config finds the data from any folder (eval --rerender, eval-mesh)
+    path = os.path.abspath(os.path.expanduser(data)) if data else None
+    selection = {"path": path, "start": start, "stride": stride, "max_frames": max_frames}
+    if path and cfg.data.layout == "synthetic":  # the demo preset with --data: the data, as its layout says
+        selection["layout"] = "auto"
     cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, **{k: v for k, v in selection.items() if v is not None}))
     return apply_overrides(cfg, list(overrides))
 

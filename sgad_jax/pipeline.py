@@ -186,8 +186,10 @@ def run(
     """
     if on_bad_frame not in ("stop", "skip"):
         raise ConfigError(f"--on-bad-frame must be stop or skip, got {on_bad_frame!r}")
-    if finetune < 0:
-        raise ConfigError(f"--finetune must be >= 0, got {finetune}")
+    if finetune < 0 or checkpoint_every < 0:
+        raise ConfigError(f"--finetune and --checkpoint-every must be >= 0, got {finetune} and {checkpoint_every}")
+    if track_only and (holdout_every or finetune):
+        raise ConfigError("--holdout-every and --finetune judge and refine the map: they cannot go with --track-only")
     ds = open_dataset(cfg.data)
     ds.colour = not track_only or viewer is not None  # tracking alone never looks at colour (the live view does)
     out = None if out_dir is None else pathlib.Path(out_dir)
@@ -221,6 +223,8 @@ def run(
         cfg, ds.intrinsics, initial_pose=initial_pose(ds), out_dir=out, track_only=track_only, save_renders=save_renders,
         mesh=mesh, holdout_every=holdout_every, source=lambda k: ds[kept[k]], progress=progress,
     )
+    if holdout_every >= len(ds):  # frames i > 0 with i % N == 0 are held out
+        ds.warnings.append(f"--holdout-every {holdout_every}: the run has {len(ds)} frames, so none is held out")
     if main:
         for line in ds.warnings:
             print(f"sgad-jax: warning: {line}", file=sys.stderr)

@@ -159,10 +159,15 @@ class SLAM:
         :attr:`failures` and, unless relocalised, gets the guess as its pose.
 
         Raises:
+            ValueError: the depth image is not float metres of the intrinsics' size.
             TrackingDiverged: the pose came out non-finite despite the fallbacks (a bug); the system
                 cannot continue.
         """
         index = len(self.poses)
+        depth = sample.depth
+        if tuple(np.shape(depth)) != (self.intr.height, self.intr.width) or not np.issubdtype(depth.dtype, np.floating):
+            # integer sensor units would be taken for metres, another size fails deep in a compiled step
+            raise ValueError(f"frame {index}: depth must be float metres of the intrinsics' size ({self.intr.height}, {self.intr.width}); got {depth.dtype} {tuple(np.shape(depth))}")
         frame = None if self.mapper is None else host_frame(sample, fill=self.maps(index))
         if self.track_cfg.hold_repeated_depth and repeats(sample.depth, self._last_depth):
             pose = self.poses[-1]

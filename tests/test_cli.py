@@ -97,7 +97,10 @@ def test_corrupt_frame_keeps_results(tmp_path, capsys):
         (["--set", "map.neighbours=-1"], "map.neighbours: must be >= 0"),
         (["--set", "map.iterations=-1"], "map.iterations: must be >= 0"),
         (["--set", "data.tum_max_dt=0"], "data.tum_max_dt: must be > 0"),
-        (["--finetune", "-5"], "--finetune must be >= 0"),
+        (["--finetune", "-5"], "--finetune and --checkpoint-every must be >= 0, got -5 and 25"),
+        (["--checkpoint-every", "-3"], "must be >= 0, got 0 and -3"),
+        (["--track-only", "--holdout-every", "4"], "cannot go with --track-only"),
+        (["--config", "demo", "--data", "/nonexistent/folder"], "/nonexistent/folder: folder not found"),
     ],
 )
 def test_bad_arguments_one_line(tmp_path, capsys, args, needle):
@@ -253,7 +256,7 @@ def test_checkpoint_write_failures_are_one_line(tmp_path, monkeypatch):
     from sgad_jax import checkpoint
     from sgad_jax.io.base import DatasetError
 
-    arrays, meta = {"x": np.zeros(3, np.float32)}, {"a": 1}
+    arrays, meta = {"x": np.zeros(3, np.float32)}, {"identity": {"a": 1}, "run": {}}
     for raised, reason in [
         (ValueError("RESOURCE_EXHAUSTED: Error writing \"x/0\": Failed to write 8 bytes: No space left on device [os_error_code='28']"), "No space left on device"),
         (PermissionError(errno.EACCES, os.strerror(errno.EACCES)), os.strerror(errno.EACCES)),
@@ -269,3 +272,51 @@ def test_checkpoint_write_failures_are_one_line(tmp_path, monkeypatch):
     checkpoint.save(tmp_path / "ckpt", 4, arrays, meta)  # and the real one writes
     got, got_meta = checkpoint.latest(tmp_path / "ckpt")
     assert got_meta == meta and np.array_equal(got["x"], arrays["x"])
+
+
+def test_a_damaged_checkpoint_is_passed_over_for_the_one_before(tmp_path, capsys):
+    """The newest step cut short by hand or by a crash of the disk (its meta gone), or a stray step
+    folder: --resume takes the step before with a warning line, and removes the damaged one so
+    that the run can write that step again; with no readable step, one line."""
+    import shutil
+
+    from sgad_jax import checkpoint
+    from sgad_jax.io.base import DatasetError
+
+    root = tmp_path / "ckpt"
+    for step in (4, 8):
+        checkpoint.save(root, step, {"x": np.full(3, step, np.float32)}, {"identity": {}, "run": {"next": step}})
+    shutil.rmtree(root / "8" / "meta")
+    (root / "12").mkdir()  # a stray folder
+    capsys.readouterr()
+    arrays, meta = checkpoint.latest(root)
+    assert meta["run"]["next"] == 4 and (arrays["x"] == 4).all()
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and all("damaged checkpoint" in ln and "resuming from step 4" in ln for ln in err)
+    assert sorted(p.name for p in root.iterdir()) == ["4"]
+    checkpoint.save(root, 8, {"x": np.full(3, 8, np.float32)}, {"identity": {}, "run": {"next": 8}})  # written again
+    shutil.rmtree(root / "8" / "arrays")
+    shutil.rmtree(root / "4" / "meta")
+    with pytest.raises(DatasetError, match=f"^{root / '8'}: damaged checkpoint .*no older one is readable"):
+        checkpoint.latest(root)
+
+
+def test_output_files_follow_the_umask(tmp_path):
+    """Not mkstemp's 0600: a folder shared by the processes of a run, or with other users, can read them."""
+    from sgad_jax.io.files import write_text
+
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert (write_text(tmp_path / "a.json", "{}").stat().st_mode & 0o777) == 0o666 & ~umask != 0o600
+
+
+def test_the_data_path_is_saved_absolute_and_the_demo_preset_reads_it(tmp_path, monkeypatch):
+    """A run's config names its data from any folder (`eval --rerender`, `eval-mesh` read it again
+    later); `--config demo --data DIR` reads DIR, where the demo's synthetic layout ignored it."""
+    from sgad_jax.cli import resolve_config
+
+    (tmp_path / "rgb").mkdir()
+    monkeypatch.chdir(tmp_path.parent)
+    cfg = resolve_config("demo", f"{tmp_path.name}/rgb/..")
+    assert cfg.data.path == str(tmp_path) and cfg.data.layout == "auto"
+    assert resolve_config("demo").data.layout == "synthetic"

@@ -274,6 +274,19 @@ def test_repeats_is_bit_for_bit_equality():
         assert not repeats(other, depth) and not np.array_equal(other, depth)
     assert not repeats(depth[:, :32], depth)
 
+def test_depth_in_sensor_units_or_of_another_size_is_refused(scene):
+    """The library takes depth as float metres of the intrinsics' size: uint16 millimetres would be
+    taken for metres, another size failed deep inside the compiled step."""
+    from sgad_jax.config import SLAMConfig
+
+    ds = scene[0]
+    system = SLAM(SLAMConfig(track=CFG), ds.intrinsics, initial_pose=lie.from_matrix(ds.gt_poses[0]), track_only=True)
+    s = ds[0]
+    for depth, what in [((1000 * s.depth).astype(np.uint16), "uint16"), (s.depth[:-2], "float32")]:
+        with pytest.raises(ValueError, match=f"frame 0: depth must be float metres of the intrinsics' size .*got {what}"):
+            system.add(dataclasses.replace(s, depth=depth))
+    assert system.poses == []
+
 
 @pytest.mark.slow
 @pytest.mark.parametrize("hold", [True, False])

@@ -14,6 +14,10 @@ from typing import BinaryIO
 from sgad_jax.io.base import DatasetError
 
 
+_UMASK = os.umask(0o022)  # read once (the only way to read it is to set it), then put back
+os.umask(_UMASK)
+
+
 def atomic_write(path, write: Callable[[BinaryIO], object]) -> pathlib.Path:
     """Call ``write(f)`` on a binary file that becomes ``path`` only once complete. A file that
     cannot be written (a full disk, no permission) raises DatasetError naming it, in one line."""
@@ -28,6 +32,7 @@ def atomic_write(path, write: Callable[[BinaryIO], object]) -> pathlib.Path:
             write(f)
             f.flush()
             os.fsync(f.fileno())
+            os.fchmod(f.fileno(), 0o666 & ~_UMASK)  # mkstemp's 0600 would hide the file from others sharing the folder
         os.replace(tmp, path)
     except BaseException as err:
         pathlib.Path(tmp).unlink(missing_ok=True)
