@@ -188,8 +188,10 @@ def run(
         raise ConfigError(f"--on-bad-frame must be stop or skip, got {on_bad_frame!r}")
     if finetune < 0 or checkpoint_every < 0:
         raise ConfigError(f"--finetune and --checkpoint-every must be >= 0, got {finetune} and {checkpoint_every}")
-    if track_only and (holdout_every or finetune):
-        raise ConfigError("--holdout-every and --finetune judge and refine the map: they cannot go with --track-only")
+    notes = []
+    if track_only and (holdout_every or finetune):  # as `... --track-only` appended to a mapping command
+        notes.append("--holdout-every and --finetune judge and refine the map: ignored with --track-only")
+        holdout_every = finetune = 0
     ds = open_dataset(cfg.data)
     ds.colour = not track_only or viewer is not None  # tracking alone never looks at colour (the live view does)
     out = None if out_dir is None else pathlib.Path(out_dir)
@@ -224,7 +226,8 @@ def run(
         mesh=mesh, holdout_every=holdout_every, source=lambda k: ds[kept[k]], progress=progress,
     )
     if holdout_every >= len(ds):  # frames i > 0 with i % N == 0 are held out
-        ds.warnings.append(f"--holdout-every {holdout_every}: the run has {len(ds)} frames, so none is held out")
+        notes.append(f"--holdout-every {holdout_every}: the run has {len(ds)} frames, so none is held out")
+    ds.warnings += notes
     if main:
         for line in ds.warnings:
             print(f"sgad-jax: warning: {line}", file=sys.stderr)

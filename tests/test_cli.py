@@ -99,7 +99,6 @@ def test_corrupt_frame_keeps_results(tmp_path, capsys):
         (["--set", "data.tum_max_dt=0"], "data.tum_max_dt: must be > 0"),
         (["--finetune", "-5"], "--finetune and --checkpoint-every must be >= 0, got -5 and 25"),
         (["--checkpoint-every", "-3"], "must be >= 0, got 0 and -3"),
-        (["--track-only", "--holdout-every", "4"], "cannot go with --track-only"),
         (["--config", "demo", "--data", "/nonexistent/folder"], "/nonexistent/folder: folder not found"),
     ],
 )
@@ -320,3 +319,16 @@ def test_the_data_path_is_saved_absolute_and_the_demo_preset_reads_it(tmp_path, 
     cfg = resolve_config("demo", f"{tmp_path.name}/rgb/..")
     assert cfg.data.path == str(tmp_path) and cfg.data.layout == "auto"
     assert resolve_config("demo").data.layout == "synthetic"
+
+
+def test_options_that_would_do_nothing_say_so(tmp_path, capsys):
+    """`--holdout-every` / `--finetune` on a track-only run (no map to judge), and a held-out
+    interval longer than the run: a warning line each, in metrics.json too, not silence."""
+    out = tmp_path / "o"
+    args = ["run", "--quiet", "--out", str(out), "--track-only", "--checkpoint-every", "0", "--set", "data.synthetic.frames=4",
+            "--set", "data.synthetic.width=80", "--set", "data.synthetic.height=60", "--holdout-every", "8", "--finetune", "5"]
+    code, _, err = _run(args, capsys)
+    assert code == 0 and "ignored with --track-only" in err
+    assert json.loads((out / "metrics.json").read_text())["data_warnings"] == ["--holdout-every and --finetune judge and refine the map: ignored with --track-only"]
+    code, _, err = _run([a for a in args if a != "--track-only"], capsys)
+    assert code == 0 and "--holdout-every 8: the run has 4 frames, so none is held out" in err
