@@ -200,7 +200,10 @@ def use_compile_cache(choice: str | None) -> None:
     if choice.lower() == "off":
         jax.config.update("jax_enable_compilation_cache", False)
     else:
-        jax.config.update("jax_compilation_cache_dir", os.path.expanduser(choice))
+        folder = os.path.expanduser(choice)
+        if os.path.exists(folder) and not os.path.isdir(folder):  # JAX would warn at length and run without it
+            raise ConfigError(f"--compile-cache {choice}: not a folder")
+        jax.config.update("jax_compilation_cache_dir", folder)
 
 
 _PRESET_FOR_LAYOUT = {"tum": "tum", "replica": "replica", "7scenes": "7scenes", "scannet": "scannet", "scannetpp": "scannetpp", "generic": "tum", "synthetic": "demo"}

@@ -99,6 +99,7 @@ def test_corrupt_frame_keeps_results(tmp_path, capsys):
         (["--set", "data.tum_max_dt=0"], "data.tum_max_dt: must be > 0"),
         (["--finetune", "-5"], "--finetune and --checkpoint-every must be >= 0, got -5 and 25"),
         (["--checkpoint-every", "-3"], "must be >= 0, got 0 and -3"),
+        (["--compile-cache", "/etc/passwd"], "--compile-cache /etc/passwd: not a folder"),
         (["--config", "demo", "--data", "/nonexistent/folder"], "/nonexistent/folder: folder not found"),
     ],
 )
@@ -332,3 +333,10 @@ def test_options_that_would_do_nothing_say_so(tmp_path, capsys):
     assert json.loads((out / "metrics.json").read_text())["data_warnings"] == ["--holdout-every and --finetune judge and refine the map: ignored with --track-only"]
     code, _, err = _run([a for a in args if a != "--track-only"], capsys)
     assert code == 0 and "--holdout-every 8: the run has 4 frames, so none is held out" in err
+
+
+def test_plots_of_a_two_frame_run_say_why_there_is_no_error_plot(tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["run", "--quiet", "--out", str(out), "--track-only", "--set", "data.synthetic.frames=2", "--set", "data.synthetic.width=80", "--set", "data.synthetic.height=60"]) == 0
+    code, _, err = _run(["plots", str(out)], capsys)
+    assert code == 0 and "ate_per_frame.png not drawn: fewer than 3 frames to align" in err  # the scene has ground truth

@@ -154,12 +154,15 @@ def plot_run(run_dir, *, compare: int = 3) -> tuple[list[pathlib.Path], list[str
     could not be drawn (no ground truth, no renders)."""
     run = Run(run_dir)
     _, est = run.trajectory
+    if len(est) == 0:
+        raise DatasetError(f"{run.root / 'trajectory.txt'}: no frames to draw")
     written, notes = [], []
     try:
         gt = run.dataset.gt_poses[: len(est)]
     except DatasetError as err:
         gt, notes = None, [f"no ground truth: the dataset could not be opened ({err})"]
     have_gt = gt is not None and len(est) >= 3 and np.isfinite(gt).all(axis=(1, 2)).sum() >= 3
+    why = "no ground truth" if gt is None or np.isfinite(gt).all(axis=(1, 2)).sum() < min(3, len(est)) else "fewer than 3 frames to align"
     name = run.metrics.get("dataset", run.root.name)
     if have_gt:
         aligned, err = aligned_errors(est, gt)
@@ -172,8 +175,8 @@ def plot_run(run_dir, *, compare: int = 3) -> tuple[list[pathlib.Path], list[str
             ylabel="position error (cm)", title=f"{name}: error after SE(3) alignment (RMSE {rmse:.2f} cm)",
         ))
     else:
-        written.append(plot_trajectory(run.root / "trajectory.png", est, None, f"{name}: estimated trajectory (no ground truth)"))
-        notes.append("plots/ate_per_frame.png not drawn: no ground truth")
+        written.append(plot_trajectory(run.root / "trajectory.png", est, None, f"{name}: estimated trajectory ({why})"))
+        notes.append(f"plots/ate_per_frame.png not drawn: {why}")
     rows, source = _psnr_rows(run)
     if rows:
         held = [bool(r.get("holdout")) for r in rows]

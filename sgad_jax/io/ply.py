@@ -168,7 +168,7 @@ def merged_gaussians(source, voxel: float | None = None, *, min_opacity: float =
         intr = run.intrinsics
         indices = run.gaussian_frames()
         if not indices:
-            raise DatasetError(f"{run.root / 'gaussians'}: no frame_XXXXXX.npz files (a --track-only run has no map)")
+            raise DatasetError(f"{run.root / 'gaussians'}: no frame_XXXXXX.npz files (a --track-only run, or one stopped before a frame was mapped, has no map)")
         load = run.gaussians
         if voxel is None:
             voxel = run.export_config.voxel * run.data_config.downscale
