@@ -186,7 +186,7 @@ class Mapper:
         fewer when ``stop()`` turns true (a Ctrl-C). The refined frames' Gaussians and Adam moments
         are held in host memory up to ``scene.finetune_budget_mb``, the rest in a temporary folder
         meanwhile; the refined Gaussians then replace the stored ones.
-        Returns the steps taken, the seconds they took and the mean loss of the first and last 50.
+        Returns the steps taken, the seconds they took and the mean loss of the first and last 50 (of each half, when fewer than 100).
         (Call with the queue mapped.)"""
         mapped = sorted(self.scene.poses)
         if not mapped or iterations <= 0:
@@ -234,7 +234,8 @@ class Mapper:
             store.close()
         if not self.store.temporary:
             self.store.flush()  # the files on disk are the refined Gaussians
-        first, last = (float(np.mean(part)) if losses else None for part in (losses[:50], losses[-50:]))
+        k = max(1, min(50, len(losses) // 2))  # the first and last k steps, apart (else a short refinement's overlap)
+        first, last = (float(np.mean(part)) if losses else None for part in (losses[:k], losses[-k:]))
         return {"finetune_iterations": len(losses), "finetune_s": time.perf_counter() - t0, "finetune_loss_first": first, "finetune_loss_last": last}
 
     def metrics(self) -> dict:

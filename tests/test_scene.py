@@ -265,6 +265,7 @@ def test_held_out_views_end_to_end(tmp_path, capsys):
     for key in ("nvs_psnr", "nvs_ssim", "nvs_lpips", "nvs_depth_l1_cm", "nvs_psnr_before_finetune"):
         assert key in m and (m[key] is None or np.isfinite(m[key])), key
     assert 10.0 < m["nvs_psnr"] < m["psnr"]  # a real image, below the training views' self-fit
+    assert m["finetune_iterations"] == 3 and m["finetune_loss_first"] != m["finetune_loss_last"]  # steps 1 and 3, not both the mean of all
     assert [r["index"] for r in m["per_frame"] if r["holdout"]] == held
     assert [r["index"] for r in m["per_frame"] if not r["holdout"]] == [i for i in range(9) if i not in held]
     for i in held:
