@@ -6,6 +6,7 @@ import json
 import math
 import os
 import pathlib
+import shutil
 import threading
 import time
 
@@ -741,6 +742,151 @@ def test_empty_folders(tmp_path):
     with pytest.raises(DatasetError) as e:
         ReplicaDataset(tmp_path, cfg(tmp_path))
     assert str(tmp_path / "results") in str(e.value)
+
+
+# --- files missing, misnamed or malformed (one line naming the file; run-usable problems warn) ------
+
+
+def _bad_frames(d) -> dict[int, str]:
+    return {x.index: x.reason for x in d.frames(skip_bad=True) if isinstance(x, base.BadFrame)}
+
+
+def test_generic_pairs_colour_and_depth_by_frame_number(tmp_path):
+    root = tmp_path / "g"
+    for i in range(4):  # other prefixes, other padding: the numbers pair them
+        write_rgb(root / f"rgb/frame{i:06d}.png", (i, 0, 0))
+        write_depth(root / f"depth/depth{i}.png", 1000 * (i + 1))
+    (root / "intrinsics.txt").write_text("20 21 15.5 11.5\n")
+    d = GenericDataset(root, cfg(root))
+    assert [float(s.depth[0, 0]) for s in d] == [1.0, 2.0, 3.0, 4.0]
+    (root / "depth/depth2.png").rename(root / "depth/depth30.png")  # counts still agree
+    with pytest.raises(DatasetError, match="no image of the same frame number") as e:
+        GenericDataset(root, cfg(root))
+    assert str(e.value).startswith(f"{root / 'rgb/frame000002.png'}: ") and "\n" not in str(e.value)
+    (root / "rgb/frame000002.png").unlink()  # the lone one is now the depth image
+    with pytest.raises(DatasetError, match="no image of the same frame number") as e:
+        GenericDataset(root, cfg(root))
+    assert str(e.value).startswith(f"{root / 'depth/depth30.png'}: ")
+    stamps = tmp_path / "stamps"  # each camera's own timestamps in the names: no number shared, paired in order
+    for i in range(3):
+        write_rgb(stamps / f"rgb/{100 + i}.031.png", (i, 0, 0))
+        write_depth(stamps / f"depth/{100 + i}.017.png", 1000 * (i + 1))
+    (stamps / "intrinsics.txt").write_text("20 21 15.5 11.5\n")
+    assert [float(s.depth[0, 0]) for s in GenericDataset(stamps, cfg(stamps))] == [1.0, 2.0, 3.0]
+
+
+def test_a_stray_frame_number_far_beyond_the_rest_is_named(tmp_path):
+    """Filling the numbering's gaps with bad frames must not turn one stray file into a million."""
+    root = make_7scenes(tmp_path / "s", n=4)
+    shutil.copy(root / "frame-000001.color.png", root / "frame-000999.color.png")
+    with pytest.raises(DatasetError, match="frame-000999.color.png: numbered 999, but only 5 frames from 0; a stray file"):
+        open_dataset(cfg(root))
+
+
+def test_generic_skips_hidden_files_and_folders(tmp_path):
+    root = make_generic(tmp_path)
+    (root / "rgb/._0000.png").write_bytes(b"macOS resource fork")
+    (root / "depth/sub.png").mkdir()
+    d = GenericDataset(root, cfg(root))
+    assert [p.name for p in d.rgb_paths] == [p.name for p in d.depth_paths] == ["0000.png", "0001.png", "0002.png"]
+
+
+@pytest.mark.parametrize("layout", ["7scenes", "replica", "scannet"])
+def test_a_missing_colour_file_is_a_bad_frame_and_later_frames_keep_their_numbers(tmp_path, layout):
+    if layout == "7scenes":
+        root = make_7scenes(tmp_path / "s", n=6)
+        gone, depth_of = root / "frame-000003.color.png", lambda i: 1.5 + 0.1 * i
+    elif layout == "replica":
+        root = make_replica(tmp_path / "r", n=6)
+        gone, depth_of = root / "results/frame000003.jpg", lambda i: 1.5 + i
+    else:
+        root = make_scannet(tmp_path / "sc", n=6)
+        gone, depth_of = root / "color/3.jpg", lambda i: 1.0 + 0.1 * i
+    full = open_dataset(cfg(root))
+    gone.unlink()
+    d = open_dataset(cfg(root))
+    assert len(d) == 6 and d.timestamps.tolist() == full.timestamps.tolist() == [0, 1, 2, 3, 4, 5]
+    np.testing.assert_array_equal(d.gt_poses, full.gt_poses)
+    assert list(_bad_frames(d)) == [3] and _bad_frames(d)[3] == f"{gone}: file not found"
+    assert d[4].depth[5, 5] == pytest.approx(depth_of(4), abs=1e-3)
+
+
+def test_a_scannet_export_of_every_kth_frame_has_no_gap(tmp_path):
+    root = make_scannet(tmp_path, n=10)
+    for i in range(10):
+        if i % 3:
+            for f in (f"color/{i}.jpg", f"depth/{i}.png", f"pose/{i}.txt"):
+                (root / f).unlink()
+    d = open_dataset(cfg(root))
+    assert d.timestamps.tolist() == [0, 3, 6, 9] and not _bad_frames(d) and not d.warnings
+
+
+def test_a_missing_first_depth_image_is_a_bad_frame_not_a_start_up_error(tmp_path):
+    root = make_7scenes(tmp_path, n=4)
+    (root / "frame-000000.depth.png").unlink()
+    d = open_dataset(cfg(root))
+    assert (d.intrinsics.width, d.intrinsics.height) == (W, H)
+    assert _bad_frames(d) == {0: f"{root / 'frame-000000.depth.png'}: file not found"}
+    assert len(open_dataset(cfg(root, start=1))) == 3
+    for i in range(1, 4):
+        (root / f"frame-{i:06d}.depth.png").unlink()
+    with pytest.raises(DatasetError, match="file not found") as e:  # no depth at all: the first one is named
+        open_dataset(cfg(root))
+    assert str(root / "frame-000000.depth.png") in str(e.value)
+
+
+def test_pose_files_are_read_for_the_selected_frames_and_named_in_warnings(tmp_path):
+    root = make_7scenes(tmp_path / "s", n=6)
+    (root / "frame-000005.pose.txt").write_text("not a pose\n")
+    d = open_dataset(cfg(root, max_frames=3))  # outside the selection: not read
+    assert len(d) == 3 and np.isfinite(d.gt_poses).all() and d.warnings == []
+    with pytest.raises(DatasetError, match="malformed") as e:
+        open_dataset(cfg(root))
+    assert str(root / "frame-000005.pose.txt") in str(e.value)
+    (root / "frame-000004.pose.txt").unlink()
+    assert open_dataset(cfg(root, max_frames=5)).warnings == [
+        f"{root / 'frame-000004.pose.txt'}: the ground-truth pose is missing for 1 of 5 frames (first: run frame 4, this file); ATE leaves them out"
+    ]
+    scan = make_scannet(tmp_path / "sc", n=4)  # pose/1.txt is -inf
+    w = open_dataset(cfg(scan)).warnings
+    assert len(w) == 1 and w[0].startswith(f"{scan / 'pose/1.txt'}: the ground-truth pose holds Inf/NaN for 1 of 4 frames")
+
+
+@pytest.mark.parametrize("camera", [dict(scale=0), dict(scale=-6553.5), dict(scale="nan"), dict(w=0), dict(h=-680)])
+def test_replica_cam_params_must_be_positive(tmp_path, camera):
+    scene = make_replica(tmp_path)
+    params = scene.parent / "cam_params.json"
+    params.write_text(json.dumps({"camera": {**REPLICA_K, **camera}}).replace('"nan"', "NaN"))
+    with pytest.raises(DatasetError) as e:
+        ReplicaDataset(scene, cfg(scene))
+    assert str(e.value).startswith(f"{params}: ") and "\n" not in str(e.value)
+
+
+def test_ground_truth_or_intrinsics_left_out_is_a_warning(tmp_path):
+    gen = make_generic(tmp_path / "g")
+    (gen / "groundtruth.txt").write_text("".join(f"{i} {i} 0 0 0 0 0 1\n" for i in range(2)))  # 2 lines, 3 frames
+    d = GenericDataset(gen, cfg(gen))
+    assert np.isnan(d.gt_poses).all()
+    assert d.warnings == [f"{gen / 'groundtruth.txt'}: 2 poses for 3 frames, expected one a frame; the run has no ground truth"]
+
+    scene = make_replica(tmp_path / "r")
+    (scene / "traj.txt").write_text("")
+    w = ReplicaDataset(scene, cfg(scene)).warnings
+    assert len(w) == 1 and w[0].startswith(f"{scene / 'traj.txt'}: no usable pose")
+    (scene / "traj.txt").unlink()
+    assert ReplicaDataset(scene, cfg(scene)).warnings == []  # no ground truth at all is fine
+
+    seven = make_7scenes(tmp_path / "s", intrinsics=False)
+    w = SevenScenesDataset(seven, cfg(seven)).warnings
+    assert len(w) == 1 and w[0].startswith(f"{seven / 'camera-intrinsics.txt'}: not found") and "585" in w[0]
+    assert SevenScenesDataset(seven, cfg(seven, intrinsics=(30.0, 30.0, 16.0, 12.0))).warnings == []
+
+
+def test_7scenes_sequences_in_natural_order_numbered_on(tmp_path):
+    make_7scenes(tmp_path / "seq-10", n=2, start=10)
+    make_7scenes(tmp_path / "seq-2", n=2, start=0)
+    d = SevenScenesDataset(tmp_path, cfg(tmp_path))
+    assert [s.rgb[0, 0, 2] for s in d] == [50, 51, 60, 61] and d.timestamps.tolist() == [0, 1, 2, 3]
 
 
 # --- real data (shared/data) ---------------------------------------------------------------------

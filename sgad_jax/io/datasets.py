@@ -114,6 +114,33 @@ def _natural_key(path: pathlib.Path):
     return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", path.stem)]
 
 
+def _frame_key(path: pathlib.Path):
+    """What pairs a colour image with its depth image: the numbers in the name (``frame000003.jpg``
+    with ``depth000003.png``), or the name itself when it holds none."""
+    return tuple(int(t) for t in re.findall(r"\d+", path.stem)) or path.stem
+
+
+def _by_frame_key(paths: list[pathlib.Path]) -> dict:
+    """{``_frame_key``: path}, in the order of ``paths``; two images of one key are an error."""
+    keyed = {}
+    for p in paths:
+        if (twin := keyed.setdefault(_frame_key(p), p)) != p:
+            raise DatasetError(f"{p}: same frame number as {twin.name}, cannot tell which one is the frame")
+    return keyed
+
+
+def _numbered_frames(found: dict[int, pathlib.Path], path_of) -> tuple[list[int], list[pathlib.Path]]:
+    """(numbers, colour paths) of the frames from the first number found to the last, at their common
+    step (a ScanNet export may keep every k-th frame). A number without its colour file gets the path
+    ``path_of(number)``: dropping it would shift the frames after it, read, it is a bad frame."""
+    numbers = sorted(found)
+    step = math.gcd(*np.diff(numbers).tolist()) or 1
+    full = range(numbers[0], numbers[-1] + 1, step)
+    if len(full) > 2 * len(numbers):  # more missing than present: a stray number, not lost frames
+        raise DatasetError(f"{found[numbers[-1]]}: numbered {numbers[-1]}, but only {len(numbers)} frames from {numbers[0]}; a stray file?")
+    return list(full), [found.get(n) or path_of(n) for n in full]
+
+
 def _tum_poses(path: pathlib.Path, rows: list[tuple[int, list[str]]]) -> tuple[np.ndarray, np.ndarray]:
     """(stamps, c2w poses) from TUM trajectory rows ``t tx ty tz qx qy qz qw``."""
     values = _table(path, rows, 8, "malformed trajectory, expected lines 't tx ty tz qx qy qz qw'")
@@ -158,8 +185,45 @@ class _FileDataset(Dataset):
     depth_paths: list[pathlib.Path]
     depth_scale: float
 
+    pose_files: list[pathlib.Path] | None = None  # a c2w pose file a frame (7-Scenes, ScanNet)
+
     def _num_raw(self) -> int:
         return len(self.rgb_paths)
+
+    def _size(self) -> tuple[int, int]:
+        """(width, height) of the first selected frame's depth image that can be read: a missing or
+        broken one is a bad frame when its turn comes, not a reason to stop at start-up."""
+        cfg, first = self.cfg, None
+        for j in range(max(cfg.start, 0), len(self.depth_paths), max(cfg.stride, 1)) or range(len(self.depth_paths)):
+            try:
+                return _image_size(self.depth_paths[j])
+            except DatasetError as e:
+                first = first or e
+        raise first
+
+    def _check_gt(self) -> list[str]:
+        """With ``pose_files``, reads the selected frames' poses only (a malformed file elsewhere must
+        not stop the run), and each warning names the first file of its kind."""
+        if self.pose_files is None:
+            return super()._check_gt()
+        self.gt_poses_raw = _no_gt(len(self.pose_files))
+        unknown = {"holds Inf/NaN": [], "is missing": []}  # run frames
+        for i, j in enumerate(self.selection):
+            path = self.pose_files[j]
+            if not path.is_file():
+                unknown["is missing"].append(i)
+            elif np.isnan(pose := _matrix4(path)).any():  # _matrix4 turns non-finite poses to NaN
+                unknown["holds Inf/NaN"].append(i)
+            else:
+                self.gt_poses_raw[j] = pose
+        n = len(self.selection)
+        if sum(map(len, unknown.values())) == n:  # no ground truth at all is fine
+            return []
+        return [
+            f"{self.pose_files[self.selection[bad[0]]]}: the ground-truth pose {what} for {len(bad)} of {n} frames "
+            f"(first: run frame {bad[0]}, this file); ATE leaves them out"
+            for what, bad in unknown.items() if bad
+        ]
 
     def _load_raw(self, j):
         depth = _depth_metres(read_image(self.depth_paths[j], depth=True), self.depth_scale)
@@ -225,7 +289,7 @@ class TUMDataset(_FileDataset):
         self.depth_scale = cfg.depth_scale if cfg.depth_scale > 0 else 5000.0
         match = re.search(r"(?:freiburg|fr)([123])", self.root.resolve().name.lower())
         fx, fy, cx, cy = TUM_INTRINSICS[int(match.group(1)) if match else 1]
-        self.intrinsics_full = _intrinsics(self.root, fx, fy, cx, cy, *_image_size(self.depth_paths[0]))
+        self.intrinsics_full = _intrinsics(self.root, fx, fy, cx, cy, *self._size())
         self._finish_init()
         self.warnings += [
             f"{path}: {n} of the {len(t_rgb)} colour frames of {rgb_list.name} have no stamp here within {cfg.tum_max_dt} s; they are left out"
@@ -248,7 +312,8 @@ class ReplicaDataset(_FileDataset):
     """Replica renders in the NICE-SLAM layout; ``traj.txt`` line ``i`` is the c2w pose of frame ``i``.
 
     ``cam_params.json`` is read from the folder or its parent; without it the standard Replica
-    camera (1200x680, f 600, c 599.5 339.5) is assumed. Timestamps are the frame numbers.
+    camera (1200x680, f 600, c 599.5 339.5) is assumed. Timestamps are the frame numbers; a missing
+    number is a bad frame.
     """
 
     layout = "replica"
@@ -256,13 +321,15 @@ class ReplicaDataset(_FileDataset):
     def __init__(self, root: pathlib.Path, cfg: DataConfig):
         super().__init__(_require_dir(root), cfg)
         results = self.root / "results"
-        self.rgb_paths = sorted(results.glob("frame*.jpg"))
-        if not self.rgb_paths:
+        found = sorted(results.glob("frame*.jpg"))
+        if not found:
             raise DatasetError(f"{results}: no frame*.jpg images")
         try:
-            numbers = [int(p.stem[len("frame"):]) for p in self.rgb_paths]
+            found = {int(p.stem[len("frame"):]): p for p in found}
         except ValueError:
             raise DatasetError(f"{results}: colour names must be frame<number>.jpg") from None
+        pad = len(next(iter(found.values())).stem) - len("frame")
+        numbers, self.rgb_paths = _numbered_frames(found, lambda n: results / f"frame{n:0{pad}d}.jpg")
         self.depth_paths = [results / f"depth{p.stem[len('frame'):]}.png" for p in self.rgb_paths]
         self.timestamps_raw = np.array(numbers, np.float64)
 
@@ -287,12 +354,16 @@ class ReplicaDataset(_FileDataset):
                 scale = float(cam.get("scale", scale))
             except (TypeError, KeyError, ValueError):
                 raise DatasetError(f"{params}: malformed, expected {{'camera': {{w, h, fx, fy, cx, cy}}}}") from None
+            if not (math.isfinite(scale) and scale > 0):  # depth / scale would be Inf or negative: no depth at all
+                raise DatasetError(f"{params}: camera scale (depth units a metre) must be a positive number, got {cam['scale']!r}")
             self.intrinsics_full = _intrinsics(params, *k)
         else:
             fx, fy, cx, cy, _, _ = REPLICA_INTRINSICS
-            self.intrinsics_full = _intrinsics(self.root, fx, fy, cx, cy, *_image_size(self.depth_paths[0]))
+            self.intrinsics_full = _intrinsics(self.root, fx, fy, cx, cy, *self._size())
         self.depth_scale = cfg.depth_scale if cfg.depth_scale > 0 else scale
         self._finish_init()
+        if self.gt_file is not None and not self.has_gt:  # _check_gt is silent when no frame has a pose
+            self.warnings.append(f"{traj}: no usable pose for the selected frames ({len(poses)} in the file); the run has no ground truth")
 
 
 # --- 7-Scenes ------------------------------------------------------------------------------------
@@ -303,22 +374,35 @@ class SevenScenesDataset(_FileDataset):
 
     The frames live in the folder itself, or in its ``seq-XX/`` subfolders (original release; taken
     in sequence order). Depth is in millimetres, with 0 and 65535 missing. ``camera-intrinsics.txt``
-    (3x3) is used when present, else f 585, c (320, 240). Timestamps are the frame positions.
+    (3x3) is used when present, else f 585, c (320, 240). Timestamps are the frame numbers, those of
+    each sequence after the last of the one before (the positions, when no frame is missing); a
+    missing number is a bad frame.
     """
 
     layout = "7scenes"
 
     def __init__(self, root: pathlib.Path, cfg: DataConfig):
         super().__init__(_require_dir(root), cfg)
-        folders = [self.root] if _seven_scenes_frames(self.root) else sorted(self.root.glob("seq-*/"))
-        self.rgb_paths = [p for d in folders for p in _seven_scenes_frames(d)]
+        folders = [self.root] if _seven_scenes_frames(self.root) else sorted(self.root.glob("seq-*/"), key=_natural_key)
+        self.rgb_paths, numbers = [], []
+        for d in filter(_seven_scenes_frames, folders):
+            frames = _seven_scenes_frames(d)
+            found = {}
+            for p in frames:
+                if not (m := re.fullmatch(r"frame-(\d+)", p.name.split(".")[0])):
+                    raise DatasetError(f"{p}: colour names must be frame-<number>.color.jpg|png")
+                found[int(m.group(1))] = p
+            pad, ext = len(m.group(1)), frames[0].suffix
+            nums, paths = _numbered_frames(found, lambda n: d / f"frame-{n:0{pad}d}.color{ext}")
+            offset = numbers[-1] + 1 if numbers else 0
+            numbers += [offset + n for n in nums]
+            self.rgb_paths += paths
         if not self.rgb_paths:
             raise DatasetError(f"{self.root}: no frame-XXXXXX.color.jpg/png images (nor in seq-XX/ subfolders)")
         prefixes = [p.parent / p.name.split(".")[0] for p in self.rgb_paths]
         self.depth_paths = [pathlib.Path(f"{q}.depth.png") for q in prefixes]
-        pose_files = [pathlib.Path(f"{q}.pose.txt") for q in prefixes]
-        self.gt_poses_raw = np.stack([_matrix4(p) if p.is_file() else np.full((4, 4), np.nan) for p in pose_files])
-        self.timestamps_raw = np.arange(len(self.rgb_paths), dtype=np.float64)
+        self.pose_files = [pathlib.Path(f"{q}.pose.txt") for q in prefixes]
+        self.timestamps_raw = np.array(numbers, np.float64)
         self.depth_scale = cfg.depth_scale if cfg.depth_scale > 0 else 1000.0
 
         k_file = next((p for d in (self.root, folders[0]) if (p := d / "camera-intrinsics.txt").is_file()), None)
@@ -329,8 +413,12 @@ class SevenScenesDataset(_FileDataset):
             fx, fy, cx, cy = k[0], k[4], k[2], k[5]
         else:
             fx, fy, cx, cy = SEVEN_SCENES_INTRINSICS
-        self.intrinsics_full = _intrinsics(k_file or self.root, fx, fy, cx, cy, *_image_size(self.depth_paths[0]))
+        self.intrinsics_full = _intrinsics(k_file or self.root, fx, fy, cx, cy, *self._size())
         self._finish_init()
+        if k_file is None and not cfg.intrinsics:
+            self.warnings.append(
+                f"{self.root / 'camera-intrinsics.txt'}: not found; using the 7-Scenes defaults fx=fy={fx:g}, cx={cx:g}, cy={cy:g}"
+            )
 
     def _load_raw(self, j):
         raw = read_image(self.depth_paths[j], depth=True)
@@ -350,8 +438,9 @@ class ScanNetDataset(_FileDataset):
     """ScanNet as exported by SensReader: ``color/<i>.jpg``, ``depth/<i>.png`` (mm), ``pose/<i>.txt``.
 
     The folder may also hold these under ``frames/`` (NICE-SLAM). Frames are sorted by their number
-    (names are not zero-padded). Colour (1296x968) is resized to the depth size (640x480) with
-    bilinear interpolation, as GS does; intrinsics are those of ``intrinsic/intrinsic_depth.txt``.
+    (names are not zero-padded), a missing number a bad frame. Colour (1296x968) is resized to the
+    depth size (640x480) with bilinear interpolation, as GS does; intrinsics are those of
+    ``intrinsic/intrinsic_depth.txt``.
     Poses that are ``-inf`` in the export become NaN ground truth (masked out of the ATE).
 
     Args:
@@ -366,17 +455,17 @@ class ScanNetDataset(_FileDataset):
         super().__init__(_require_dir(root), cfg)
         base = self.root / "frames" if (self.root / "frames" / "color").is_dir() else self.root
         color = _require_dir(base / "color")
-        self.rgb_paths = sorted((p for p in color.glob("*.jpg") if p.stem.isdigit()), key=lambda p: int(p.stem))
-        if not self.rgb_paths:
+        found = {int(p.stem): p for p in color.glob("*.jpg") if p.stem.isdigit()}
+        if not found:
             raise DatasetError(f"{color}: no <number>.jpg images")
+        numbers, self.rgb_paths = _numbered_frames(found, lambda n: color / f"{n}.jpg")
         self.depth_paths = [base / "depth" / f"{p.stem}.png" for p in self.rgb_paths]
-        pose_files = [base / "pose" / f"{p.stem}.txt" for p in self.rgb_paths]
-        self.gt_poses_raw = np.stack([_matrix4(p) if p.is_file() else np.full((4, 4), np.nan) for p in pose_files])
-        self.timestamps_raw = np.array([int(p.stem) for p in self.rgb_paths], np.float64)
+        self.pose_files = [base / "pose" / f"{p.stem}.txt" for p in self.rgb_paths]
+        self.timestamps_raw = np.array(numbers, np.float64)
         self.depth_scale = cfg.depth_scale if cfg.depth_scale > 0 else 1000.0
         self.crop = SCANNET_CROP_EDGE if crop_edge is None else int(crop_edge)
 
-        width, height = _image_size(self.depth_paths[0])
+        width, height = self._size()
         e = self.crop
         if e < 0 or 2 * e >= min(width, height):
             raise DatasetError(f"{self.root}: crop_edge {e} does not fit a {width}x{height} image")
@@ -490,13 +579,14 @@ class ScanNetPPDataset(_FileDataset):
 
 
 class GenericDataset(_FileDataset):
-    """Any folder with ``rgb/`` (or ``color/``) and ``depth/`` images, paired in sorted name order.
+    """Any folder with ``rgb/`` (or ``color/``) and ``depth/`` images, paired by the numbers in their
+    names (``frame000003.jpg`` with ``depth000003.png``; by name when it holds none), in name order.
 
     Intrinsics: ``intrinsics.txt`` (``fx fy cx cy`` or a 3x3 matrix) or ``intrinsics.json``
     (``{fx, fy, cx, cy}``), or ``cfg.intrinsics``. Integer depth is divided by ``cfg.depth_scale``
     (1000, millimetres, by default); floating-point depth (TIFF, EXR) is taken as metres. An optional
     TUM-format ``groundtruth.txt`` is used only when it has exactly one line per frame (its stamps
-    then become the timestamps); otherwise there is no ground truth and timestamps are positions.
+    then become the timestamps); otherwise (a warning) there is no ground truth and timestamps are positions.
     """
 
     layout = "generic"
@@ -506,22 +596,31 @@ class GenericDataset(_FileDataset):
         rgb_dir = next((self.root / n for n in ("rgb", "color") if (self.root / n).is_dir()), self.root / "rgb")
         depth_dir = self.root / "depth"
         self.rgb_paths = _images(_require_dir(rgb_dir))
-        self.depth_paths = _images(_require_dir(depth_dir))
         if not self.rgb_paths:
             raise DatasetError(f"{rgb_dir}: no images")
-        if len(self.rgb_paths) != len(self.depth_paths):
-            raise DatasetError(
-                f"{rgb_dir} has {len(self.rgb_paths)} images but {depth_dir} has {len(self.depth_paths)}"
-            )
+        # Paired by name, not position: with one image missing, position would pair every later
+        # colour image with the next frame's depth. Names that share no number at all (each camera's
+        # own timestamps) pair in order, when the counts agree.
+        colour, depth = _by_frame_key(self.rgb_paths), _by_frame_key(_images(_require_dir(depth_dir)))
+        if colour.keys().isdisjoint(depth.keys()) and len(colour) == len(depth):
+            self.depth_paths = list(depth.values())
+        else:
+            for mine, other, folder in ((colour, depth, depth_dir), (depth, colour, rgb_dir)):
+                if (lone := next((p for key, p in mine.items() if key not in other), None)) is not None:
+                    raise DatasetError(f"{lone}: no image of the same frame number in {folder}")
+            self.depth_paths = [depth[key] for key in colour]
         n = len(self.rgb_paths)
         self.timestamps_raw = np.arange(n, dtype=np.float64)
         self.gt_poses_raw = _no_gt(n)
-        gt_file = self.root / "groundtruth.txt"
-        if gt_file.is_file() and len(rows := _list_rows(gt_file)) == n:
+        gt_file, gt_lines = self.root / "groundtruth.txt", None
+        if gt_file.is_file() and (gt_lines := len(rows := _list_rows(gt_file))) == n:
             self.timestamps_raw, self.gt_poses_raw = _tum_poses(gt_file, rows)
+            self.gt_file = gt_file
         self.depth_scale = cfg.depth_scale if cfg.depth_scale > 0 else 1000.0
-        self.intrinsics_full = _intrinsics(self._k_source(), *self._read_k(), *_image_size(self.depth_paths[0]))
+        self.intrinsics_full = _intrinsics(self._k_source(), *self._read_k(), *self._size())
         self._finish_init()
+        if gt_lines not in (None, n):
+            self.warnings.append(f"{gt_file}: {gt_lines} poses for {n} frames, expected one a frame; the run has no ground truth")
 
     def _k_source(self) -> pathlib.Path:
         txt, js = self.root / "intrinsics.txt", self.root / "intrinsics.json"
@@ -553,7 +652,12 @@ class GenericDataset(_FileDataset):
 
 
 def _images(folder: pathlib.Path) -> list[pathlib.Path]:
-    return sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key)
+    # Hidden files (macOS "._0.jpg" resource forks) and folders are no images; a broken link is
+    # kept, to be named when read.
+    return sorted(
+        (p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and not p.is_dir()),
+        key=_natural_key,
+    )
 
 
 # --- layout detection ----------------------------------------------------------------------------
@@ -602,7 +706,9 @@ def open_dataset(cfg: DataConfig) -> Dataset:
     """
     if cfg.layout != "auto" and cfg.layout not in LAYOUTS:
         raise DatasetError(f"unknown dataset layout '{cfg.layout}' (choose from auto, {', '.join(LAYOUTS)})")
-    if not cfg.path or cfg.layout == "synthetic":
+    if cfg.path and cfg.layout == "synthetic":
+        raise DatasetError(f"data.layout=synthetic is the built-in scene, but data.path is {cfg.path}: set data.layout=auto to read it")
+    if not cfg.path:
         from sgad_jax.io.synthetic import SyntheticDataset
 
         return SyntheticDataset(cfg)
