@@ -82,6 +82,29 @@ def test_rpe_matches_evo():
     assert ours["pairs"] == 59
 
 
+def test_rpe_angle_is_exact_for_small_rotations_in_float32_and_off_so3_ground_truth():
+    """Each step's estimate turns 0.001 degrees more than the truth (the analytic answer): poses
+    stored in float32 (a run's trajectory) and ground truth whose rotations are 1e-4 off
+    orthonormal (7-Scenes' KinectFusion poses) must not change that."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(4)
+    n, extra = 30, 1e-3
+    axes = rng.normal(size=(n, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    gt, est = [np.eye(4)], [np.eye(4)]
+    for a in axes:
+        move = Rotation.from_rotvec(np.radians(0.05) * a).as_matrix()
+        gt.append(gt[-1] @ se3(move, 0.01 * a))
+        est.append(est[-1] @ se3(move @ Rotation.from_rotvec(np.radians(extra) * a).as_matrix(), 0.01 * a))
+    gt, est = np.stack(gt), np.stack(est)
+    assert rpe(est, gt)["rot_rmse_deg"] == pytest.approx(extra, rel=1e-6)
+    assert rpe(est.astype(np.float32), gt)["rot_rmse_deg"] == pytest.approx(extra, rel=0.05)  # arccos gave 0.02
+    skewed = gt.copy()
+    skewed[:, :3, :3] *= 1 + 1e-4 * rng.normal(size=(n + 1, 3, 3))  # not quite rotations
+    assert rpe(est, skewed)["rot_rmse_deg"] == pytest.approx(extra, rel=0.05)
+
+
 def test_rpe_sees_one_jump_only():
     """A trajectory that is exact up to a rigid motion except for one step: only that pair errs."""
     rng = np.random.default_rng(3)
