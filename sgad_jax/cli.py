@@ -226,6 +226,12 @@ def resolve_config(preset=None, data=None, *, start=None, stride=None, max_frame
     return apply_overrides(cfg, list(overrides))
 
 
+def _not_made(args) -> str:
+    """What a stopped run leaves out of what was asked for after it (said, not skipped in silence)."""
+    asked = [flag for flag, on in (("--export-ply", args.export_ply), ("--mesh", args.mesh), ("--plots", args.plots)) if on]
+    return f" ({', '.join(asked)} not made: --resume finishes the run and makes them)" if asked else ""
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         return _main(argv)
@@ -266,10 +272,10 @@ def _main(argv: list[str] | None) -> int:
             info = _make_mesh(args.out, cfg)
             print(f"wrote {info['mesh']} ({info['vertices']} vertices, {info['faces']} faces, {100 * info['voxel_m']:.3g} cm voxels)", file=sys.stderr)
     except (ConfigError, DatasetError) as err:
-        print(f"sgad-jax: error: {err}", file=sys.stderr)
+        print(f"sgad-jax: error: {err}{_not_made(args) if isinstance(err, DatasetError) else ''}", file=sys.stderr)
         return 2
     except RunInterrupted as err:  # 128 + the signal's number, as a shell reports it
-        print(f"sgad-jax: {err}; wrote {args.out}/trajectory.txt and {args.out}/metrics.json", file=sys.stderr)
+        print(f"sgad-jax: {err}; wrote {args.out}/trajectory.txt and {args.out}/metrics.json{_not_made(args)}", file=sys.stderr)
         return 128 + err.signum
     m = result.metrics
     keys = ("frames", "ate_rmse_cm", "ate_mean_cm", "track_ms_median", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "nvs_psnr_before_finetune", "nvs_psnr", "nvs_ssim", "nvs_lpips", "map_s_per_frame", "compile_s", "peak_rss_mb")

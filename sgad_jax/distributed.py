@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import os
+import re
 import time
 
 import jax
@@ -43,13 +44,23 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     """Join a multi-process run (``jax.distributed.initialize``); arguments left ``None`` come from
     the environment as JAX reads it (``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``,
     ``JAX_PROCESS_ID``, or a cluster such as SLURM). CPU devices talk over gloo."""
-    jax.config.update("jax_cpu_collectives_implementation", "gloo")
     coordinator = coordinator or os.environ.get("JAX_COORDINATOR_ADDRESS")
     if num_processes is None and "JAX_NUM_PROCESSES" in os.environ:
         num_processes = int(os.environ["JAX_NUM_PROCESSES"])
     if process_id is None and "JAX_PROCESS_ID" in os.environ:
         process_id = int(os.environ["JAX_PROCESS_ID"])
-    jax.distributed.initialize(coordinator, num_processes=num_processes, process_id=process_id)
+    # JAX says these as a traceback, or fails deep in its client; one line here
+    if (num_processes is not None or process_id is not None) and not coordinator:
+        raise ConfigError("--num-processes / --process-id need --coordinator HOST:PORT (the address of process 0)")
+    if coordinator and not re.fullmatch(r".+:\d{1,5}", coordinator):
+        raise ConfigError(f"--coordinator {coordinator}: expected HOST:PORT, e.g. 10.0.0.1:1234")
+    if num_processes is not None and (num_processes < 1 or process_id is None or not 0 <= process_id < num_processes):
+        raise ConfigError(f"--process-id must lie in [0, --num-processes); got {process_id} of {num_processes}")
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    try:
+        jax.distributed.initialize(coordinator, num_processes=num_processes, process_id=process_id)
+    except (ValueError, RuntimeError) as err:
+        raise ConfigError(f"cannot join the run at {coordinator}: {str(err).splitlines()[0]}") from None
 
 
 def frames_mesh(per_process: int | None = None) -> Mesh:

@@ -211,6 +211,11 @@ def run(
         raise ConfigError(f"cannot resume {ckpt_root}: it was made with another {what}; rerun with the same settings or a new --out")
     if restored is not None and "depth_stamps" not in restored[0]:
         raise ConfigError(f"cannot resume {ckpt_root}: it was written by an older sgad_jax (no depth stamps); rerun without --resume or with a new --out")
+    live = None
+    if viewer is not None and main:  # before an earlier run's outputs go: a taken port must not cost them
+        from sgad_jax.viewer import LiveView
+
+        live = LiveView(ds.intrinsics, host=viewer[0], port=viewer[1])
     if out is not None and restored is None and main:
         for stale in (out / "gaussians", out / "renders", out / "checkpoints", out / "plots"):
             shutil.rmtree(stale, ignore_errors=True)
@@ -231,11 +236,6 @@ def run(
     if main:
         for line in ds.warnings:
             print(f"sgad-jax: warning: {line}", file=sys.stderr)
-    live = None
-    if viewer is not None and main:
-        from sgad_jax.viewer import LiveView
-
-        live = LiveView(ds.intrinsics, host=viewer[0], port=viewer[1])
     start = 0
     if restored is not None:
         meta = restored[1]["run"]

@@ -118,7 +118,7 @@ def judge(cfg: TrackConfig, info: TrackInfo, T: lie.SE3, jump: Float[Array, "2"]
     test fails."""
     bits = [
         (~_finite(T), FAIL_NONFINITE),
-        (~(_share(info) >= info.inlier_floor), FAIL_INLIERS),
+        (~(_share(info) >= info.inlier_floor) | (info.points == 0), FAIL_INLIERS),  # no point: nothing was tracked
         (~((jump[0] <= bound[0]) & (jump[1] <= jnp.radians(bound[1]))), FAIL_JUMP),
     ]
     failed = sum(jnp.where(b, v, 0) for b, v in bits).astype(jnp.int32)
@@ -171,8 +171,10 @@ def track_step(
     judged = cfg.judge & (state.geom.count > 0)  # the first frame has nothing to be judged against
 
     def first_failure(T, info):
-        # A non-finite pose fails even unjudged: NaN must never reach a pose or the state.
-        return jnp.where(judged, judge(cfg, info, T, _jump(T, guess), cfg.max_jump), jnp.where(_finite(T), 0, FAIL_NONFINITE))
+        # A non-finite pose fails even unjudged: NaN must never reach a pose or the state. A frame
+        # without a point (no depth in the tracking range) too: T stays empty, and nothing is tracked.
+        unjudged = jnp.where(_finite(T), 0, FAIL_NONFINITE) + jnp.where(cfg.judge & (info.points == 0), FAIL_INLIERS, 0)
+        return jnp.where(judged, judge(cfg, info, T, _jump(T, guess), cfg.max_jump), unjudged)
 
     def solve_from(start):
         T, info = solver(cfg, state.geom, cloud, start)

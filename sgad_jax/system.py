@@ -66,7 +66,9 @@ def failure_reason(cfg, info) -> str:
     bits, parts = int(info.failure), []
     if bits & FAIL_NONFINITE:
         parts.append("non-finite pose")
-    if bits & FAIL_INLIERS:
+    if bits & FAIL_INLIERS and int(info.points) == 0:
+        parts.append(f"no point to track (no depth within track.min_depth / max_depth, {cfg.min_depth:g} / {cfg.max_depth:g} m)")
+    elif bits & FAIL_INLIERS:
         parts.append(f"few inliers ({int(info.inliers) / max(int(info.points), 1):.2f} < {float(info.inlier_floor):.2f})")
     if bits & FAIL_JUMP:
         t, r = (float(v) for v in np.asarray(info.jump))

@@ -70,8 +70,8 @@ def _write_generic(root, n=4, bad=None):
 def test_corrupt_frame_keeps_results(tmp_path, capsys):
     data, out = tmp_path / "data", tmp_path / "out"
     _write_generic(data, n=4, bad=2)
-    code, _, err = _run(["run", "--data", str(data), "--out", str(out), "--quiet", "--track-only", "--set", "track.stride=2"], capsys)
-    assert code == 2
+    code, _, err = _run(["run", "--data", str(data), "--out", str(out), "--quiet", "--track-only", "--plots", "--set", "track.stride=2"], capsys)
+    assert code == 2 and "(--plots not made: --resume finishes the run and makes them)" in err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and "0002.png" in lines[0] and "Traceback" not in err
     stamps, _ = read_tum_trajectory(out / "trajectory.txt")
@@ -100,6 +100,9 @@ def test_corrupt_frame_keeps_results(tmp_path, capsys):
         (["--finetune", "-5"], "--finetune and --checkpoint-every must be >= 0, got -5 and 25"),
         (["--checkpoint-every", "-3"], "must be >= 0, got 0 and -3"),
         (["--compile-cache", "/etc/passwd"], "--compile-cache /etc/passwd: not a folder"),
+        (["--coordinator", "nonsense"], "--coordinator nonsense: expected HOST:PORT"),
+        (["--num-processes", "2", "--process-id", "0"], "need --coordinator HOST:PORT"),
+        (["--coordinator", "127.0.0.1:1", "--num-processes", "2", "--process-id", "5"], "--process-id must lie in [0, --num-processes); got 5 of 2"),
         (["--config", "demo", "--data", "/nonexistent/folder"], "/nonexistent/folder: folder not found"),
     ],
 )

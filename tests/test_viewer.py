@@ -154,3 +154,21 @@ def test_view_bad_port_one_line(tmp_path, capsys, taken):
     assert code == [2], "sgad-jax view did not return"
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(port) in err, err
+
+
+def test_a_taken_live_viewer_port_stops_the_run_before_it_clears_the_folder(tmp_path, capsys):
+    """`run --viewer PORT` into the folder of an earlier run, the port taken: one line, and the
+    earlier run's files are all still there (they used to be removed before the port was tried)."""
+    from sgad_jax.cli import main
+
+    out = tmp_path / "run"
+    fabricate_run(out)
+    (out / "gaussians.ply").write_text("an earlier run's")
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        code = main(["run", "--quiet", "--out", str(out), "--viewer", str(port), "--viewer-host", "127.0.0.1", "--set", "data.synthetic.frames=3"])
+    assert code == 2 and "cannot listen on 127.0.0.1" in capsys.readouterr().err
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
