@@ -244,15 +244,16 @@ def run(
         skipped[:] = meta.get("skipped", [])
         start = meta.get("next", len(system))
 
-    saved = [start if restored is not None else -1]  # the step last written (a bad frame can follow it)
+    saved = start if restored is not None else -1  # the step last written (a bad frame can follow it)
 
     def save_checkpoint(next_frame: int) -> None:
-        if next_frame == saved[0]:  # orbax refuses to write a step twice; that one holds this state
+        nonlocal saved
+        if next_frame == saved:  # orbax refuses to write a step twice; that one holds this state
             return
         arrays, meta = system.checkpoint_state()
         meta.update(kept=kept, skipped=skipped, next=next_frame)
         checkpoint.save(ckpt_root, next_frame, arrays, {"identity": identity, "run": meta})
-        saved[0] = next_frame
+        saved = next_frame
 
     stopped, interrupted = None, None
     rss_trace = []

@@ -845,7 +845,7 @@ def test_pose_files_are_read_for_the_selected_frames_and_named_in_warnings(tmp_p
     assert str(root / "frame-000005.pose.txt") in str(e.value)
     (root / "frame-000004.pose.txt").unlink()
     assert open_dataset(cfg(root, max_frames=5)).warnings == [
-        f"{root / 'frame-000004.pose.txt'}: the ground-truth pose is missing for 1 of 5 frames (first: run frame 4, this file); ATE leaves them out"
+        f"{root / 'frame-000004.pose.txt'}: the ground-truth pose is missing for 1 of 5 frames (first: run frame 4); ATE leaves them out"
     ]
     scan = make_scannet(tmp_path / "sc", n=4)  # pose/1.txt is -inf
     w = open_dataset(cfg(scan)).warnings

@@ -297,10 +297,14 @@ class Dataset:
         for what, bad in (("holds Inf/NaN", ~known & ~missing), ("is missing", missing)):
             if bad.any():
                 first = int(np.flatnonzero(bad)[0])
-                lines.append(f"{self.gt_file or self.root}: the ground-truth pose {what} for {int(bad.sum())} of {len(sel)} frames (first: run frame {first}); ATE leaves them out")
+                lines.append(f"{self._gt_source(self.selection[first])}: the ground-truth pose {what} for {int(bad.sum())} of {len(sel)} frames (first: run frame {first}); ATE leaves them out")
         gt[self.selection[~known]] = np.nan
         self.gt_poses_raw = gt
         return lines
+
+    def _gt_source(self, j: int):
+        """The file that holds frame ``j``'s ground truth (named in warnings)."""
+        return self.gt_file or self.root
 
     def without(self, source_indices) -> "Dataset":
         """A shallow copy whose selection leaves out the dataset's own frames ``source_indices``."""

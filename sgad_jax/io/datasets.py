@@ -68,12 +68,12 @@ def _numbers(path: pathlib.Path, text: str | None = None) -> np.ndarray:
 
 
 def _matrix4(path: pathlib.Path) -> np.ndarray:
-    """A 4x4 pose file; non-finite entries (ScanNet's ``-inf`` poses) give an all-NaN matrix."""
+    """A 4x4 pose file, as written (ScanNet's ``-inf`` poses included: the ground-truth check
+    reports and masks them)."""
     values = _numbers(path)
     if values.size != 16:
         raise DatasetError(f"{path}: malformed pose, expected 16 numbers, got {values.size}")
-    pose = values.reshape(4, 4)
-    return pose if np.isfinite(pose).all() else np.full((4, 4), np.nan)
+    return values.reshape(4, 4)
 
 
 def _read_json(path: pathlib.Path) -> dict:
@@ -202,28 +202,17 @@ class _FileDataset(Dataset):
         raise first
 
     def _check_gt(self) -> list[str]:
-        """With ``pose_files``, reads the selected frames' poses only (a malformed file elsewhere must
-        not stop the run), and each warning names the first file of its kind."""
-        if self.pose_files is None:
-            return super()._check_gt()
-        self.gt_poses_raw = _no_gt(len(self.pose_files))
-        unknown = {"holds Inf/NaN": [], "is missing": []}  # run frames
-        for i, j in enumerate(self.selection):
-            path = self.pose_files[j]
-            if not path.is_file():
-                unknown["is missing"].append(i)
-            elif np.isnan(pose := _matrix4(path)).any():  # _matrix4 turns non-finite poses to NaN
-                unknown["holds Inf/NaN"].append(i)
-            else:
-                self.gt_poses_raw[j] = pose
-        n = len(self.selection)
-        if sum(map(len, unknown.values())) == n:  # no ground truth at all is fine
-            return []
-        return [
-            f"{self.pose_files[self.selection[bad[0]]]}: the ground-truth pose {what} for {len(bad)} of {n} frames "
-            f"(first: run frame {bad[0]}, this file); ATE leaves them out"
-            for what, bad in unknown.items() if bad
-        ]
+        """With ``pose_files``, the selected frames' poses are read first, and only they: a malformed
+        file of a frame the run does not use must not stop it."""
+        if self.pose_files is not None:
+            self.gt_poses_raw = _no_gt(len(self.pose_files))
+            for j in self.selection:
+                if self.pose_files[j].is_file():
+                    self.gt_poses_raw[j] = _matrix4(self.pose_files[j])
+        return super()._check_gt()
+
+    def _gt_source(self, j: int):
+        return self.pose_files[j] if self.pose_files is not None else super()._gt_source(j)
 
     def _load_raw(self, j):
         depth = _depth_metres(read_image(self.depth_paths[j], depth=True), self.depth_scale)
